@@ -1,0 +1,20 @@
+# The two commands a new user runs (README): `make demo` and `make test`. Each sets up ./.venv first
+# when it is missing or was built from other pins.
+VENV := .venv
+
+.PHONY: setup demo test test-slow benchmark
+
+setup:
+	@bash scripts/setup_venv.sh
+
+demo: setup
+	$(VENV)/bin/frugalnerf-demo
+
+test: setup
+	$(VENV)/bin/python -m pytest -q
+
+test-slow: setup
+	$(VENV)/bin/python -m pytest -q -m slow
+
+benchmark: setup
+	$(VENV)/bin/python scripts/benchmark_vs_tensorf.py

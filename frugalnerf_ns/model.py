@@ -1,0 +1,330 @@
+"""FrugalNeRF model for nerfstudio: multi-scale rendering, Eq. 1 colour loss and the regularisers.
+
+Geometric adaptation (Eq. 2-10), novel-view rays, sparse depth and monocular depth come with later issues;
+``get_loss_dict`` gathers terms from ``_extra_losses`` so they can be added without touching the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, NamedTuple, Tuple, Type
+
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.models.base_model import Model, ModelConfig
+from nerfstudio.utils import colormaps
+from torch import Tensor, nn
+from torch.nn import Parameter
+
+from frugalnerf_ns import losses
+from frugalnerf_ns.color_mlp import MLPImplementation
+from frugalnerf_ns.field import DensityActivation, FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
+
+Background = Literal["random_white", "white", "black"]
+
+
+def scale_suffix(scale: int) -> str:
+    """Output name suffix: "" for the full scale, "_scale1", "_scale2", ... for the lower ones."""
+    return "" if scale == 0 else f"_scale{scale}"
+
+
+@dataclass
+class FrugalNeRFModelConfig(ModelConfig):
+    """FrugalNeRF model settings; defaults are the paper's LLFF 2-view settings."""
+
+    _target: Type = field(default_factory=lambda: FrugalNeRFModel)
+    enable_collider: bool = False
+    """Rays are clipped to the scene box by the model itself, so nerfstudio's near/far collider is off."""
+    near_plane: float = 0.05
+    """Samples closer to the camera than this are skipped."""
+    initial_voxels: int = 64**3
+    """Voxel count of the grid at the start of training."""
+    final_voxels: int = 640**3
+    """Voxel count after the last upsampling (paper: 640^3 for LLFF, 300^3 for DTU)."""
+    upsample_iters: Tuple[int, ...] = (500, 1000, 1500, 2000, 2500, 3000)
+    """Steps at which the grid is upsampled (log-linear in voxel count); the grid optimiser restarts."""
+    alpha_mask_iters: Tuple[int, ...] = (1000, 2000)
+    """Steps at which the occupancy (alpha) mask is recomputed; the box shrinks to it the first time."""
+    alpha_mask_threshold: float = 1e-4
+    """Alpha below which a (dilated) voxel counts as empty."""
+    density_components: Tuple[int, int, int] = (16, 4, 4)
+    """Components of the XY, XZ, YZ density planes and their lines."""
+    appearance_components: Tuple[int, int, int] = (48, 12, 12)
+    """Components of the XY, XZ, YZ appearance planes and their lines."""
+    appearance_dim: int = 27
+    """Output size of the appearance basis matrix shared by all scales."""
+    num_lower_scales: int = 2
+    """L: lower scales below the full one (2 = three scales)."""
+    downsample_ratio: int = 4
+    """Stride ratio between consecutive scales."""
+    step_ratio: float = 0.5
+    """Sample step at full resolution, in voxels."""
+    max_samples_per_ray: int = 1024
+    """Upper bound on samples per ray at the full scale."""
+    distance_scale: float = 25.0
+    """Sample distances are multiplied by this before alpha compositing (TensoRF)."""
+    density_activation: DensityActivation = "relu"
+    """relu for forward-facing scenes, softplus (shifted by -10) for object scenes."""
+    weight_threshold: float = 1e-4
+    """Colour is evaluated only at samples whose compositing weight exceeds this."""
+    mlp_hidden_dim: int = 128
+    """Width of the colour MLP."""
+    feature_pe: int = 0
+    """Positional-encoding frequencies of the appearance features fed to the MLP (0: none)."""
+    use_view_dirs: bool = False
+    """Feed the viewing direction to the colour MLP."""
+    view_pe: int = 0
+    """Positional-encoding frequencies of the viewing direction (0: none)."""
+    mlp_implementation: MLPImplementation = "auto"
+    """auto: tinycudann when importable with CUDA, torch otherwise."""
+    background: Background = "random_white"
+    """Training background: white or black at random per batch (reference code), or fixed."""
+    full_scale_color_weight: float = 1.0
+    """Eq. 1 weight of the full-resolution colour loss."""
+    lower_scale_color_weight: float = 10.0
+    """Eq. 1 weight of each lower scale's colour loss (LLFF 10, DTU and RealEstate 1)."""
+    appearance_tv_weight: float = 10.0
+    """TV on the appearance grid."""
+    density_tv_weight: float = 10.0
+    """Edge-aware TV on the density grid (weights exp(-|grad appearance|))."""
+    tv_plane_weight: float = 1e-2
+    """Weight of the planes inside a TV term."""
+    tv_line_weight: float = 1e-4
+    """Weight of the lines inside a TV term."""
+    density_l1_weight: float = 0.0
+    """L1 sparsity on the density components."""
+    distortion_weight: float = 5e-4
+    """Mip-NeRF 360 distortion loss."""
+
+
+class ScaleRender(NamedTuple):
+    rgb: Float[Tensor, "rays 3"]
+    depth: Float[Tensor, "rays 1"]
+    accumulation: Float[Tensor, "rays 1"]
+    weights: Float[Tensor, "rays samples"]
+    t: Float[Tensor, "rays samples"]
+
+
+class FrugalNeRFModel(Model):
+    """Weight-sharing multi-scale tensorial radiance field."""
+
+    config: FrugalNeRFModelConfig
+
+    def populate_modules(self) -> None:
+        super().populate_modules()
+        from torchmetrics.functional import structural_similarity_index_measure
+        from torchmetrics.image import PeakSignalNoiseRatio
+
+        from frugalnerf_ns.lpips_offline import OfflineLPIPS
+
+        aabb = self.scene_box.aabb.float()
+        resolution = resolution_for_voxels(self.config.initial_voxels, (aabb[1] - aabb[0]).tolist())
+        self.field = FrugalNeRFField(
+            aabb=aabb,
+            resolution=resolution,
+            density_components=self.config.density_components,
+            appearance_components=self.config.appearance_components,
+            appearance_dim=self.config.appearance_dim,
+            downsample_ratio=self.config.downsample_ratio,
+            num_lower_scales=self.config.num_lower_scales,
+            density_activation=self.config.density_activation,
+            mlp_hidden_dim=self.config.mlp_hidden_dim,
+            feature_pe=self.config.feature_pe,
+            use_view_dirs=self.config.use_view_dirs,
+            view_pe=self.config.view_pe,
+            mlp_implementation=self.config.mlp_implementation,
+        )
+        self.upsample_voxels = log_linear_voxel_counts(
+            self.config.initial_voxels, self.config.final_voxels, len(self.config.upsample_iters)
+        )
+        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
+        self.ssim = structural_similarity_index_measure
+        self.lpips = OfflineLPIPS()
+
+    # ---- optimisation -----------------------------------------------------------------------------------
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        def upsample(step: int) -> None:
+            voxels = self.upsample_voxels[self.config.upsample_iters.index(step)]
+            box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
+            self.field.upsample(resolution_for_voxels(voxels, box))
+            _restart_grid_optimizer(training_callback_attributes)
+
+        def update_alpha_mask(step: int) -> None:
+            occupied_box = self.field.update_alpha_mask(
+                self.config.step_ratio, self.config.distance_scale, self.config.alpha_mask_threshold
+            )
+            if step == self.config.alpha_mask_iters[0]:
+                # Keep the voxel count while the box shrinks: the freed voxels refine the occupied region.
+                voxels = int(self.field.density_grid.resolution.prod())
+                self.field.shrink(occupied_box)
+                box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
+                self.field.upsample(resolution_for_voxels(voxels, box))
+                _restart_grid_optimizer(training_callback_attributes)
+
+        return [
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=self.config.upsample_iters),
+            TrainingCallback(
+                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=self.config.alpha_mask_iters
+            ),
+        ]
+
+    # ---- rendering --------------------------------------------------------------------------------------
+    def _background(self, device: torch.device) -> Float[Tensor, "3"]:
+        if self.config.background == "black" or (
+            self.config.background == "random_white" and self.training and torch.rand(()) < 0.5
+        ):
+            return torch.zeros(3, device=device)
+        return torch.ones(3, device=device)
+
+    def render_scale(
+        self,
+        origins: Float[Tensor, "rays 3"],
+        directions: Float[Tensor, "rays 3"],
+        scale: int,
+        background: Float[Tensor, "3"],
+    ) -> ScaleRender:
+        """March one scale: fixed-step samples in the box, density where occupied, colour where it matters."""
+        segments = intersect_aabb(origins, directions, self.field.aabb, self.config.near_plane)
+        step = self.field.sample_step(scale, self.config.step_ratio)
+        diagonal = float((self.field.aabb[1] - self.field.aabb[0]).norm())
+        limit = max(1, self.config.max_samples_per_ray // self.field.stride(scale))
+        num_samples = max(1, min(limit, int(diagonal / step) + 1))
+        t, valid = march_steps(segments, step, num_samples, jitter=self.training)
+        positions = origins[:, None, :] + directions[:, None, :] * t[..., None]
+        valid = valid & self.field.inside(positions)
+        densities = torch.zeros_like(t)
+        if valid.any():
+            densities[valid] = self.field.density(positions[valid], scale)
+        comp = composite_weights(densities, t, step, self.config.distance_scale, segments.t_near, segments.t_far)
+        colors = torch.zeros(*t.shape, 3, device=t.device, dtype=t.dtype)
+        shade = comp.weights > self.config.weight_threshold
+        if shade.any():
+            dirs = directions[:, None, :].expand_as(positions)
+            colors[shade] = self.field.color(positions[shade], dirs[shade], scale)
+        rgb = composite_rgb(comp.weights, colors, background)
+        return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t)
+
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        shape = ray_bundle.origins.shape[:-1]
+        origins = ray_bundle.origins.reshape(-1, 3)
+        directions = ray_bundle.directions.reshape(-1, 3)
+        background = self._background(origins.device)
+        # The background travels with the outputs so the loss composites the target on the same one.
+        outputs: Dict[str, Tensor] = {"background": background} if self.training else {}
+        for scale in range(self.field.num_scales):
+            render = self.render_scale(origins, directions, scale, background)
+            suffix = scale_suffix(scale)
+            outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)
+            outputs[f"depth{suffix}"] = render.depth.reshape(*shape, 1)
+            outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
+            if self.training:
+                outputs[f"weights{suffix}"] = render.weights
+                outputs[f"t{suffix}"] = render.t
+        return outputs
+
+    # ---- losses and metrics -----------------------------------------------------------------------------
+    def _target_rgb(self, image: Tensor, background: Tensor) -> Float[Tensor, "rays 3"]:
+        """Ground-truth colour; images with alpha are composited on the same background as the render."""
+        if image.shape[-1] == 4:
+            return image[..., :3] * image[..., 3:] + background * (1.0 - image[..., 3:])
+        return image[..., :3]
+
+    def _scale_weights(self) -> List[float]:
+        return [self.config.full_scale_color_weight] + [self.config.lower_scale_color_weight] * (
+            self.field.num_scales - 1
+        )
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        target = self._target_rgb(batch["image"].to(self.device), outputs["background"])
+        metrics = {}
+        for scale in range(self.field.num_scales):
+            suffix = scale_suffix(scale)
+            metrics[f"psnr{suffix}"] = self.psnr(outputs[f"rgb{suffix}"], target)
+        return metrics
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        cfg = self.config
+        target = self._target_rgb(batch["image"].to(self.device), outputs["background"])
+        predictions = [outputs[f"rgb{scale_suffix(s)}"] for s in range(self.field.num_scales)]
+        loss_dict = {"rgb_loss": losses.multiscale_color_loss(predictions, target, self._scale_weights())}
+        loss_dict.update(self._regularizers(outputs))
+        loss_dict.update(self._extra_losses(outputs, batch))
+        return loss_dict
+
+    def _regularizers(self, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """TV, L1 and distortion at every scale; lower scales divided by ratio^(2l) (16 and 256 for s = 4)."""
+        cfg = self.config
+        terms: Dict[str, Tensor] = {}
+
+        def add(name: str, value: Tensor) -> None:
+            terms[name] = terms.get(name, 0.0) + value
+
+        for scale in range(self.field.num_scales):
+            stride = self.field.stride(scale)
+            factor = 1.0 / stride**2
+            density_planes, density_lines = self.field.density_grid.scale_views(stride)
+            app_planes, app_lines = self.field.appearance_grid.scale_views(stride)
+            if cfg.appearance_tv_weight > 0:
+                tv = losses.grid_tv_loss(app_planes, app_lines, cfg.tv_plane_weight, cfg.tv_line_weight)
+                add("tv_appearance", cfg.appearance_tv_weight * factor * tv)
+            if cfg.density_tv_weight > 0:
+                tv = losses.grid_tv_loss(
+                    density_planes, density_lines, cfg.tv_plane_weight, cfg.tv_line_weight, edge_planes=app_planes
+                )
+                add("tv_density", cfg.density_tv_weight * factor * tv)
+            if cfg.density_l1_weight > 0:
+                add("l1_density", cfg.density_l1_weight * factor * losses.density_l1_loss(density_planes, density_lines))
+            if cfg.distortion_weight > 0:
+                suffix = scale_suffix(scale)
+                step = self.field.sample_step(scale, cfg.step_ratio)
+                dist = losses.distortion_loss(outputs[f"weights{suffix}"], outputs[f"t{suffix}"], step)
+                add("distortion", cfg.distortion_weight * factor * dist)
+        return terms
+
+    def _extra_losses(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
+        """Seam for the geometric-adaptation and depth terms of later issues."""
+        return {}
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        background = torch.ones(3, device=self.device) if self.config.background != "black" else torch.zeros(3, device=self.device)
+        image = self._target_rgb(batch["image"].to(self.device), background)
+        to_nchw = lambda x: torch.moveaxis(x, -1, 0)[None]  # noqa: E731
+        rgb = outputs["rgb"].clamp(0, 1)
+        metrics = {
+            "psnr": float(self.psnr(to_nchw(image), to_nchw(rgb))),
+            "ssim": float(self.ssim(to_nchw(image), to_nchw(rgb))),
+            "lpips": float(self.lpips(to_nchw(image), to_nchw(rgb))),
+        }
+        images = {"img": torch.cat([image, rgb], dim=1)}
+        for scale in range(self.field.num_scales):
+            suffix = scale_suffix(scale)
+            if scale > 0:
+                metrics[f"psnr{suffix}"] = float(self.psnr(to_nchw(image), to_nchw(outputs[f"rgb{suffix}"])))
+            images[f"depth{suffix}"] = colormaps.apply_depth_colormap(
+                outputs[f"depth{suffix}"], accumulation=outputs[f"accumulation{suffix}"]
+            )
+            images[f"accumulation{suffix}"] = colormaps.apply_colormap(outputs[f"accumulation{suffix}"])
+        return metrics, images
+
+
+def _restart_grid_optimizer(attributes: TrainingCallbackAttributes) -> None:
+    """Recreate the grid optimiser (its state no longer matches the resized tensors); its lr restarts."""
+    optimizers, pipeline = attributes.optimizers, attributes.pipeline
+    if optimizers is None or pipeline is None:
+        return
+    config = optimizers.config["encodings"]
+    params = pipeline.get_param_groups()["encodings"]
+    optimizers.optimizers["encodings"] = config["optimizer"].setup(params=params)
+    optimizers.parameters["encodings"] = params
+    if config.get("scheduler"):
+        optimizers.schedulers["encodings"] = (
+            config["scheduler"].setup().get_scheduler(optimizer=optimizers.optimizers["encodings"], lr_init=config["optimizer"].lr)
+        )

@@ -1,0 +1,120 @@
+"""Turn the presets in ``configs/presets.yaml`` into nerfstudio MethodSpecifications.
+
+The structure (pipeline, datamanager, model, optimiser groups) is built once here; every number lives in
+the YAML, where each preset derives from another by overriding dotted paths.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from importlib import resources
+from typing import Any, Dict, Mapping, Tuple
+
+import yaml
+import torch
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from frugalnerf_ns.data import FrugalNerfstudioDataParserConfig
+from frugalnerf_ns.model import FrugalNeRFModelConfig
+
+
+@dataclasses.dataclass
+class AdamBetasOptimizerConfig(AdamOptimizerConfig):
+    """Adam with configurable betas (nerfstudio's Adam config fixes them at torch's defaults)."""
+
+    betas: Tuple[float, float] = (0.9, 0.99)
+    """Adam's running-average coefficients; TensoRF and FrugalNeRF use (0.9, 0.99)."""
+
+
+def load_preset_table() -> Dict[str, Dict[str, Any]]:
+    """The raw YAML table: name -> {description, inherits?, overrides}."""
+    text = resources.files("frugalnerf_ns.configs").joinpath("presets.yaml").read_text()
+    return yaml.safe_load(text)
+
+
+def resolved_overrides(name: str, table: Mapping[str, Mapping[str, Any]]) -> Dict[str, Any]:
+    """Overrides of ``name`` merged over those of every preset it inherits from (root first)."""
+    chain, seen = [], set()
+    current: str | None = name
+    while current is not None:
+        if current in seen:
+            raise ValueError(f"preset inheritance loops through {current!r}")
+        if current not in table:
+            raise KeyError(f"unknown preset {current!r}; known: {sorted(table)}")
+        seen.add(current)
+        chain.append(table[current])
+        current = table[current].get("inherits")
+    merged: Dict[str, Any] = {}
+    for entry in reversed(chain):
+        merged.update(entry.get("overrides") or {})
+    return merged
+
+
+def base_trainer_config(method_name: str) -> TrainerConfig:
+    """The shape of every FrugalNeRF run; the numbers come from the presets."""
+    return TrainerConfig(
+        method_name=method_name,
+        pipeline=VanillaPipelineConfig(
+            datamanager=VanillaDataManagerConfig(dataparser=FrugalNerfstudioDataParserConfig()),
+            model=FrugalNeRFModelConfig(),
+        ),
+        optimizers={
+            "encodings": {
+                "optimizer": AdamBetasOptimizerConfig(lr=0.08),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.002, max_steps=5000),
+            },
+            "fields": {
+                "optimizer": AdamBetasOptimizerConfig(lr=4e-3),
+                "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+            },
+        },
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 14),
+        vis="viewer",
+        # nerfstudio defaults to CUDA and fails on a CPU-only machine; default to what this machine has.
+        machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
+    )
+
+
+def apply_override(config: Any, dotted: str, value: Any) -> None:
+    """Set ``config.a.b.c = value``; dict keys and dataclass fields both count as path segments."""
+    *parents, leaf = dotted.split(".")
+    target = config
+    for part in parents:
+        target = target[part] if isinstance(target, dict) else getattr(target, part)
+    if isinstance(target, dict):
+        if leaf not in target:
+            raise KeyError(f"preset override {dotted!r}: no key {leaf!r}")
+        target[leaf] = value
+        return
+    if not dataclasses.is_dataclass(target) or leaf not in {f.name for f in dataclasses.fields(target)}:
+        raise KeyError(f"preset override {dotted!r}: {type(target).__name__} has no field {leaf!r}")
+    current = getattr(target, leaf)
+    if isinstance(current, tuple) and isinstance(value, list):
+        value = tuple(value)
+    setattr(target, leaf, value)
+
+
+def build_trainer_config(name: str, table: Mapping[str, Mapping[str, Any]] | None = None) -> TrainerConfig:
+    table = table if table is not None else load_preset_table()
+    config = base_trainer_config(name)
+    for dotted, value in resolved_overrides(name, table).items():
+        apply_override(config, dotted, copy.deepcopy(value))
+    return config
+
+
+def method_specification(name: str) -> MethodSpecification:
+    table = load_preset_table()
+    return MethodSpecification(config=build_trainer_config(name, table), description=table[name]["description"])
+
+
+# Entry points (pyproject.toml, group nerfstudio.method_configs) point at these.
+frugalnerf = method_specification("frugalnerf")
+frugalnerf_tiny = method_specification("frugalnerf-tiny")
+frugalnerf_dtu = method_specification("frugalnerf-dtu")

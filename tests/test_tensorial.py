@@ -1,0 +1,126 @@
+import math
+
+import pytest
+import torch
+
+from frugalnerf_ns.field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.tensorial import TensorVMGrid, coords_for_stride, strided_length
+
+AABB = torch.tensor([[-1.0, -1.5, -0.5], [1.0, 1.5, 0.5]])
+
+
+def test_planes_and_lines_have_per_plane_components_and_non_cubic_resolution():
+    grid = TensorVMGrid((17, 33, 9), (16, 4, 4))
+    shapes = [tuple(p.shape) for p in grid.planes] + [tuple(line.shape) for line in grid.lines]
+    # XY (H=y, W=x), XZ, YZ planes; Z, Y, X lines.
+    assert shapes == [(1, 16, 33, 17), (1, 4, 9, 17), (1, 4, 9, 33), (1, 16, 9, 1), (1, 4, 33, 1), (1, 4, 17, 1)]
+    products = grid.plane_line_products(torch.rand(10, 3) * 2 - 1)
+    assert [tuple(p.shape) for p in products] == [(10, 16), (10, 4), (10, 4)]
+
+
+def test_lower_scales_are_views_of_the_same_storage():
+    grid = TensorVMGrid((33, 33, 33), (4, 2, 2))
+    planes, lines = grid.scale_views(4)
+    for view, full in zip(planes + lines, list(grid.planes) + list(grid.lines)):
+        assert view.untyped_storage().data_ptr() == full.untyped_storage().data_ptr()
+    assert tuple(planes[0].shape) == (1, 4, 9, 9) and tuple(lines[0].shape) == (1, 4, 9, 1)
+
+
+def test_gradient_through_a_lower_scale_reaches_only_the_shared_full_resolution_entries():
+    grid = TensorVMGrid((33, 33, 33), (2, 2, 2))
+    grid.plane_line_products(torch.rand(64, 3) * 2 - 1, stride=4)[0].sum().backward()
+    grad = grid.planes[0].grad[0, 0]
+    on_stride = torch.zeros_like(grad, dtype=torch.bool)
+    on_stride[::4, ::4] = True
+    assert grad[on_stride].abs().sum() > 0
+    assert grad[~on_stride].abs().sum() == 0
+
+
+def test_strided_coordinates_read_the_same_world_point():
+    # A node of the view (index k) is full-grid node k * stride: both lookups must agree there.
+    grid = TensorVMGrid((37, 21, 29), (3, 3, 3))
+    res = grid.resolution_tuple
+    nodes = torch.tensor([[8, 4, 12], [0, 0, 0], [36, 20, 28], [32, 16, 24]], dtype=torch.float32)
+    stride = 4
+    nodes = (nodes / stride).floor() * stride  # on the view's lattice
+    coords = nodes / (torch.tensor(res) - 1) * 2 - 1
+    full = grid.plane_line_products(coords, stride=1)
+    lower = grid.plane_line_products(coords, stride=stride)
+    for a, b in zip(full, lower):
+        torch.testing.assert_close(a, b)
+    assert strided_length(37, 4) == 10
+    assert coords_for_stride(torch.tensor(-1.0), 37, 4) == -1.0
+
+
+def test_model_size_does_not_grow_with_the_number_of_scales():
+    sizes = []
+    for lower in range(4):
+        field = FrugalNeRFField(AABB, (20, 30, 10), num_lower_scales=lower, mlp_implementation="torch")
+        sizes.append(sum(p.numel() for p in field.parameters()))
+        assert field.num_scales == lower + 1
+    assert len(set(sizes)) == 1
+
+
+def test_upsampling_keeps_the_represented_function():
+    grid = TensorVMGrid((9, 7, 5), (3, 2, 2))
+    coords = torch.rand(500, 3) * 2 - 1
+    before = [p.detach() for p in grid.plane_line_products(coords)]
+    grid.resample((17, 13, 9))  # refinement by 2: every old node is a new node, bilinear is exact
+    after = grid.plane_line_products(coords)
+    for a, b in zip(before, after):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+    assert grid.resolution_tuple == (17, 13, 9)
+
+
+def test_crop_keeps_values_inside_the_kept_region():
+    grid = TensorVMGrid((11, 11, 11), (2, 2, 2))
+    full_plane = grid.planes[0].detach().clone()
+    grid.crop((2, 3, 1), (8, 9, 10))
+    assert grid.resolution_tuple == (7, 7, 10)
+    torch.testing.assert_close(grid.planes[0].detach(), full_plane[:, :, 3:10, 2:9])
+
+
+def test_state_dict_loads_into_a_grid_of_another_resolution():
+    trained = TensorVMGrid((21, 21, 21), (2, 2, 2))
+    fresh = TensorVMGrid((5, 5, 5), (2, 2, 2))
+    fresh.load_state_dict(trained.state_dict())
+    assert fresh.resolution_tuple == (21, 21, 21)
+    coords = torch.rand(20, 3) * 2 - 1
+    torch.testing.assert_close(fresh.plane_line_products(coords)[1], trained.plane_line_products(coords)[1])
+
+
+def test_voxel_schedule_is_log_linear_and_resolution_follows_the_box():
+    counts = log_linear_voxel_counts(64**3, 640**3, 5)
+    assert counts[-1] == 640**3
+    ratios = [b / a for a, b in zip([64**3] + counts[:-1], counts)]
+    assert max(ratios) / min(ratios) == pytest.approx(1.0, rel=1e-3)
+    res = resolution_for_voxels(1000, (1.0, 2.0, 4.0))
+    assert res == (5, 10, 20)
+    assert math.prod(res) == 1000
+
+
+def test_sample_step_is_half_a_voxel_and_coarser_by_the_ratio_at_lower_scales():
+    field = FrugalNeRFField(AABB, (21, 31, 11), mlp_implementation="torch")
+    voxel = 0.1  # box 2 x 3 x 1 with 20 x 30 x 10 intervals
+    assert field.sample_step(0) == pytest.approx(voxel / 2)
+    assert field.sample_step(1) == pytest.approx(4 * voxel / 2)
+    assert field.sample_step(2) == pytest.approx(16 * voxel / 2)
+
+
+def test_alpha_mask_and_shrink_fit_the_occupied_region():
+    field = FrugalNeRFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), (21, 21, 21), density_activation="relu",
+                            mlp_implementation="torch")
+    with torch.no_grad():
+        for p in list(field.density_grid.planes) + list(field.density_grid.lines):
+            p.zero_()
+        # Density only where x is in the upper half: the XY plane's columns x >= 0 times a constant Z line.
+        field.density_grid.planes[0][:, 0, :, 11:] = 1.0
+        field.density_grid.lines[0][:, 0] = 1.0
+    box = field.update_alpha_mask(step_ratio=0.5, distance_scale=25.0)
+    assert box[0, 0] >= -0.05 and box[0, 0] <= 0.05  # dilation reaches one voxel (0.1) left of x = 0.1
+    assert box[1, 0] == pytest.approx(1.0)
+    inside = field.inside(torch.tensor([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0]]))
+    assert inside.tolist() == [True, False]
+    field.shrink(box)
+    assert field.aabb[0, 0] >= -0.1 and field.aabb[1, 0] == pytest.approx(1.0)
+    assert field.density_grid.resolution_tuple[0] < 21
