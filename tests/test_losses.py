@@ -1,0 +1,60 @@
+import pytest
+import torch
+
+from frugalnerf_ns import losses
+
+
+def test_multiscale_color_loss_is_the_weighted_sum_of_per_scale_mse():
+    target = torch.zeros(4, 3)
+    preds = [torch.full((4, 3), 0.1), torch.full((4, 3), 0.2), torch.full((4, 3), 0.3)]
+    value = losses.multiscale_color_loss(preds, target, [1.0, 10.0, 10.0])
+    assert torch.allclose(value, torch.tensor(0.01 + 10 * 0.04 + 10 * 0.09))
+    with pytest.raises(ValueError, match="3 scale predictions but 2"):
+        losses.multiscale_color_loss(preds, target, [1.0, 1.0])
+
+
+def test_total_variation_hand_computed_and_edge_weights():
+    plane = torch.tensor([[[[0.0, 1.0], [2.0, 4.0]]]])
+    # vertical diffs: 2, 3 -> mean 6.5; horizontal: 1, 2 -> mean 2.5
+    assert torch.allclose(losses.total_variation(plane), torch.tensor(9.0))
+    line = torch.tensor([[[[0.0], [1.0], [3.0]]]])
+    assert torch.allclose(losses.total_variation(line), torch.tensor(2.5))
+    # A strong appearance edge between the two columns switches the horizontal term (nearly) off.
+    appearance = torch.tensor([[[[0.0, 50.0], [0.0, 50.0]]]])
+    weighted = losses.total_variation(plane, losses.edge_weights_from(appearance))
+    assert torch.allclose(weighted, torch.tensor(6.5), atol=1e-6)
+
+
+def test_edge_weights_are_detached():
+    appearance = torch.rand(1, 2, 4, 4, requires_grad=True)
+    density = torch.rand(1, 2, 4, 4, requires_grad=True)
+    losses.grid_tv_loss([density], [], 1.0, 1.0, edge_planes=[appearance]).backward()
+    assert appearance.grad is None and density.grad is not None
+
+
+def test_density_l1():
+    value = losses.density_l1_loss([torch.tensor([[-1.0, 1.0]])], [torch.tensor([[2.0]])])
+    assert torch.allclose(value, torch.tensor(3.0))
+
+
+def _distortion_brute_force(weights, t, step):
+    pair = (weights[:, :, None] * weights[:, None, :] * (t[:, :, None] - t[:, None, :]).abs()).sum(dim=(1, 2))
+    return (pair + (weights.square() * step).sum(dim=-1) / 3).mean()
+
+
+def test_distortion_loss_matches_the_quadratic_definition():
+    gen = torch.Generator().manual_seed(0)
+    weights = torch.rand(7, 20, generator=gen) / 10
+    t = torch.arange(20, dtype=torch.float32).expand(7, 20) * 0.1 + 1.0
+    fast = losses.distortion_loss(weights, t, 0.1)
+    assert torch.allclose(fast, _distortion_brute_force(weights, t, 0.1), rtol=1e-5)
+
+
+def test_distortion_prefers_concentrated_weights_and_has_finite_gradients():
+    t = torch.linspace(0, 1, 10).expand(1, 10)
+    spread = torch.full((1, 10), 0.1, requires_grad=True)
+    peaked = torch.zeros(1, 10)
+    peaked[0, 4] = 1.0
+    assert losses.distortion_loss(peaked, t, 0.1) < losses.distortion_loss(spread, t, 0.1)
+    losses.distortion_loss(spread, t, 0.1).backward()
+    assert torch.isfinite(spread.grad).all()

@@ -1,0 +1,172 @@
+"""The nerfstudio model on hand-made ray bundles (no dataset, no trainer)."""
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
+
+from frugalnerf_ns.model import FrugalNeRFModelConfig, scale_suffix
+
+
+def tiny_model(**overrides):
+    fields = dict(
+        initial_voxels=16**3,
+        final_voxels=24**3,
+        upsample_iters=(2, 4),
+        alpha_mask_iters=(3,),
+        density_components=(4, 2, 2),
+        appearance_components=(8, 2, 2),
+        mlp_hidden_dim=16,
+        background="white",
+        distortion_weight=1e-3,
+        density_l1_weight=1e-4,
+    )
+    fields.update(overrides)
+    config = FrugalNeRFModelConfig(**fields)
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    torch.manual_seed(0)
+    return config.setup(scene_box=box, num_train_data=3)
+
+
+def ray_bundle(n=64):
+    gen = torch.Generator().manual_seed(0)
+    origins = torch.tensor([0.0, 0.0, -3.0]).expand(n, 3).clone()
+    targets = (torch.rand(n, 3, generator=gen) - 0.5) * torch.tensor([1.0, 1.0, 0.0])
+    directions = torch.nn.functional.normalize(targets - origins, dim=-1)
+    return RayBundle(
+        origins=origins, directions=directions, pixel_area=torch.ones(n, 1), camera_indices=torch.zeros(n, 1).long()
+    )
+
+
+def test_outputs_per_scale_with_viewer_friendly_names():
+    model = tiny_model()
+    model.eval()
+    outputs = model.get_outputs(ray_bundle(32))
+    for scale in range(3):
+        suffix = scale_suffix(scale)
+        assert outputs[f"rgb{suffix}"].shape == (32, 3)
+        assert outputs[f"depth{suffix}"].shape == (32, 1)
+        assert outputs[f"accumulation{suffix}"].shape == (32, 1)
+        assert torch.isfinite(outputs[f"depth{suffix}"]).all()
+        assert ((outputs[f"rgb{suffix}"] >= 0) & (outputs[f"rgb{suffix}"] <= 1)).all()
+    # Training-only tensors stay out of eval outputs (the viewer lists every output key).
+    assert not any(k.startswith(("weights", "t_", "background")) for k in outputs)
+    assert set(k.split("_scale")[0] for k in outputs) == {"rgb", "depth", "accumulation"}
+
+
+def test_lower_scales_take_fewer_samples():
+    model = tiny_model()
+    model.train()
+    outputs = model.get_outputs(ray_bundle(8))
+    samples = [outputs[f"t{scale_suffix(s)}"].shape[1] for s in range(3)]
+    assert samples[0] > samples[1] > samples[2]
+    assert samples[0] >= 3 * samples[1]
+
+
+def test_losses_are_finite_and_send_gradients_to_grids_and_mlp():
+    model = tiny_model()
+    model.train()
+    bundle = ray_bundle(64)
+    batch = {"image": torch.rand(64, 3)}
+    outputs = model.get_outputs(bundle)
+    loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+    assert {"rgb_loss", "tv_appearance", "tv_density", "l1_density", "distortion"} <= set(loss_dict)
+    total = sum(loss_dict.values())
+    assert torch.isfinite(total)
+    total.backward()
+    groups = model.get_param_groups()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in groups["encodings"])
+    assert any(p.grad.abs().sum() > 0 for p in groups["fields"] if p.grad is not None)
+
+
+def test_rgb_loss_uses_the_scale_weights():
+    model = tiny_model(lower_scale_color_weight=10.0, full_scale_color_weight=1.0)
+    outputs = {f"rgb{scale_suffix(s)}": torch.full((4, 3), 0.1 * (s + 1)) for s in range(3)}
+    outputs["background"] = torch.ones(3)
+    weightless = dict(appearance_tv_weight=0.0, density_tv_weight=0.0, distortion_weight=0.0, density_l1_weight=0.0)
+    for k, v in weightless.items():
+        setattr(model.config, k, v)
+    loss = model.get_loss_dict(outputs, {"image": torch.zeros(4, 3)})
+    assert set(loss) == {"rgb_loss"}
+    assert math.isclose(float(loss["rgb_loss"]), 0.01 + 10 * 0.04 + 10 * 0.09, rel_tol=1e-5)
+
+
+def test_rgba_targets_are_composited_on_the_render_background():
+    model = tiny_model()
+    image = torch.tensor([[1.0, 0.0, 0.0, 0.5]])
+    assert torch.allclose(model._target_rgb(image, torch.zeros(3)), torch.tensor([[0.5, 0.0, 0.0]]))
+    assert torch.allclose(model._target_rgb(image, torch.ones(3)), torch.tensor([[1.0, 0.5, 0.5]]))
+
+
+def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser():
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+    from nerfstudio.engine.optimizers import Optimizers
+    from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+
+    from frugalnerf_ns.presets import AdamBetasOptimizerConfig
+
+    model = tiny_model()
+    pipeline = SimpleNamespace(get_param_groups=model.get_param_groups)
+    opt_config = {
+        name: {"optimizer": AdamBetasOptimizerConfig(lr=0.01), "scheduler": ExponentialDecaySchedulerConfig(max_steps=10)}
+        for name in ("encodings", "fields")
+    }
+    optimizers = Optimizers(opt_config, model.get_param_groups())
+    attrs = TrainingCallbackAttributes(optimizers=optimizers, grad_scaler=None, pipeline=pipeline, trainer=None)
+    callbacks = model.get_training_callbacks(attrs)
+    start = model.field.density_grid.resolution_tuple
+    for step in range(1, 6):
+        model.train()
+        outputs = model.get_outputs(ray_bundle(32))
+        loss = sum(model.get_loss_dict(outputs, {"image": torch.rand(32, 3)}).values())
+        optimizers.zero_grad_all()
+        loss.backward()
+        optimizers.optimizer_step_all()
+        for callback in callbacks:
+            callback.run_callback_at_location(step, location=callback.where_to_run[0])
+        if step in (2, 4):
+            # The optimiser now holds the new tensors (a stale one would skip or break the step).
+            held = {id(p) for g in optimizers.optimizers["encodings"].param_groups for p in g["params"]}
+            assert held == {id(p) for p in model.field.grid_parameters()}
+    end = model.field.density_grid.resolution_tuple
+    assert math.prod(end) > math.prod(start)
+    assert model.field.alpha_mask.numel() > 0
+    assert (model.field.aabb[1] - model.field.aabb[0] <= 2.0 + 1e-5).all()
+    model.eval()
+    assert torch.isfinite(model.get_outputs(ray_bundle(16))["rgb"]).all()
+
+
+def test_state_dict_round_trip_after_resolution_change():
+    trained = tiny_model()
+    trained.field.upsample((20, 21, 22))
+    trained.field.update_alpha_mask(0.5, 25.0)
+    fresh = tiny_model()
+    fresh.load_state_dict(trained.state_dict())
+    assert fresh.field.density_grid.resolution_tuple == (20, 21, 22)
+    assert torch.equal(fresh.field.alpha_mask, trained.field.alpha_mask)
+    trained.eval()
+    fresh.eval()
+    bundle = ray_bundle(16)
+    assert torch.allclose(trained.get_outputs(bundle)["rgb"], fresh.get_outputs(bundle)["rgb"])
+
+
+def test_image_metrics_include_psnr_ssim_lpips_and_per_scale_images():
+    model = tiny_model()
+    model.eval()
+    h, w = 12, 10
+    outputs = {}
+    for s in range(3):
+        suffix = scale_suffix(s)
+        outputs[f"rgb{suffix}"] = torch.rand(h, w, 3)
+        outputs[f"depth{suffix}"] = torch.rand(h, w, 1)
+        outputs[f"accumulation{suffix}"] = torch.rand(h, w, 1)
+    # LPIPS' AlexNet needs a larger image than 12x10.
+    outputs = {k: torch.nn.functional.interpolate(v.permute(2, 0, 1)[None], size=(64, 64))[0].permute(1, 2, 0) for k, v in outputs.items()}
+    metrics, images = model.get_image_metrics_and_images(outputs, {"image": outputs["rgb"].clone()})
+    assert metrics["psnr"] > 90 and metrics["ssim"] > 0.99 and abs(metrics["lpips"]) < 1e-5
+    assert {"psnr_scale1", "psnr_scale2"} <= set(metrics)
+    assert images["img"].shape == (64, 128, 3)
+    assert {"depth", "depth_scale1", "depth_scale2", "accumulation_scale2"} <= set(images)

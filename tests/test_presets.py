@@ -1,0 +1,64 @@
+from importlib.metadata import entry_points
+
+import pytest
+
+from frugalnerf_ns import presets
+
+
+def test_entry_points_register_the_methods():
+    names = {ep.name for ep in entry_points(group="nerfstudio.method_configs")}
+    assert {"frugalnerf", "frugalnerf-tiny", "frugalnerf-dtu"} <= names
+
+
+def test_nerfstudio_discovers_the_methods():
+    from nerfstudio.plugins.registry import discover_methods
+
+    methods, descriptions = discover_methods()
+    assert methods["frugalnerf"].method_name == "frugalnerf"
+    assert "paper" in descriptions["frugalnerf"]
+
+
+def test_paper_preset_holds_the_paper_settings():
+    config = presets.build_trainer_config("frugalnerf")
+    model = config.pipeline.model
+    assert config.max_num_iterations == 5000
+    assert config.pipeline.datamanager.train_num_rays_per_batch == 4096
+    assert model.initial_voxels == 64**3 and model.final_voxels == 640**3
+    assert model.density_components == (16, 4, 4) and model.appearance_components == (48, 12, 12)
+    assert model.num_lower_scales == 2 and model.downsample_ratio == 4
+    assert model.distance_scale == 25.0 and model.density_activation == "relu"
+    assert model.step_ratio == 0.5
+    assert config.optimizers["encodings"]["optimizer"].lr == 0.08
+    assert config.optimizers["encodings"]["optimizer"].betas == (0.9, 0.99)
+    assert config.optimizers["fields"]["optimizer"].lr == 0.004
+
+
+def test_derived_presets_inherit_and_override():
+    dtu = presets.build_trainer_config("frugalnerf-dtu")
+    assert dtu.pipeline.model.final_voxels == 300**3
+    assert dtu.pipeline.model.density_activation == "softplus"
+    # Not overridden by the DTU preset: inherited from the paper preset.
+    assert dtu.pipeline.model.density_components == (16, 4, 4)
+    tiny = presets.build_trainer_config("frugalnerf-tiny")
+    assert tiny.max_num_iterations < 1000 and tiny.pipeline.model.final_voxels < 64**3
+    assert tiny.method_name == "frugalnerf-tiny"
+
+
+def test_bad_presets_fail_clearly():
+    table = {
+        "a": {"description": "", "overrides": {"pipeline.model.no_such_field": 1}},
+        "b": {"description": "", "inherits": "c"},
+        "c": {"description": "", "inherits": "b"},
+        "d": {"description": "", "inherits": "missing"},
+    }
+    with pytest.raises(KeyError, match="no_such_field"):
+        presets.build_trainer_config("a", table)
+    with pytest.raises(ValueError, match="loops"):
+        presets.resolved_overrides("b", table)
+    with pytest.raises(KeyError, match="unknown preset 'missing'"):
+        presets.resolved_overrides("d", table)
+
+
+def test_list_values_become_tuples():
+    table = {"x": {"description": "", "overrides": {"pipeline.model.upsample_iters": [1, 2]}}}
+    assert presets.build_trainer_config("x", table).pipeline.model.upsample_iters == (1, 2)
