@@ -85,3 +85,16 @@ class CheckedNerfstudio(Nerfstudio):
         if len(outputs.image_filenames) == 0:
             raise DataError(f"the {split} split of {self.config.data} is empty")
         return outputs
+
+
+def _dataparser_specification():
+    from nerfstudio.plugins.registry_dataparser import DataParserSpecification
+
+    return DataParserSpecification(
+        config=FrugalNerfstudioDataParserConfig(), description="nerfstudio-format data with FrugalNeRF's input checks"
+    )
+
+
+# Entry point (pyproject.toml, group nerfstudio.dataparser_configs): makes the checked parser a CLI
+# subcommand, so its options can be set after the method, e.g. `frugal-nerfstudio --center-method focus`.
+frugal_nerfstudio = _dataparser_specification()
