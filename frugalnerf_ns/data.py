@@ -59,7 +59,11 @@ def _check_frame(frame: dict, root: Path, transforms: Path) -> None:
         raise DataError(f"{name}: transform_matrix has shape {tuple(pose.shape)}, expected 4x4")
     if not torch.isfinite(pose).all():
         raise DataError(f"{name}: transform_matrix contains NaN or inf")
-    path = root / name
+    check_image_file(root / name, name)
+
+
+def check_image_file(path: Path, name: str) -> None:
+    """The file exists and decodes as an image (PIL's verify reads the whole stream, catching truncation)."""
     if not path.is_file():
         raise DataError(f"{name}: image file {path} not found")
     try:
@@ -86,15 +90,3 @@ class CheckedNerfstudio(Nerfstudio):
             raise DataError(f"the {split} split of {self.config.data} is empty")
         return outputs
 
-
-def _dataparser_specification():
-    from nerfstudio.plugins.registry_dataparser import DataParserSpecification
-
-    return DataParserSpecification(
-        config=FrugalNerfstudioDataParserConfig(), description="nerfstudio-format data with FrugalNeRF's input checks"
-    )
-
-
-# Entry point (pyproject.toml, group nerfstudio.dataparser_configs): makes the checked parser a CLI
-# subcommand, so its options can be set after the method, e.g. `frugal-nerfstudio --center-method focus`.
-frugal_nerfstudio = _dataparser_specification()

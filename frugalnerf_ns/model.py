@@ -7,7 +7,7 @@ Geometric adaptation (Eq. 2-10), novel-view rays, sparse depth and monocular dep
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, NamedTuple, Tuple, Type
+from typing import Dict, List, Literal, NamedTuple, Optional, Tuple, Type
 
 import torch
 from jaxtyping import Float
@@ -21,6 +21,7 @@ from torch.nn import Parameter
 from frugalnerf_ns import losses
 from frugalnerf_ns.color_mlp import MLPImplementation
 from frugalnerf_ns.field import DensityActivation, FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
 
 Background = Literal["random_white", "white", "black"]
@@ -140,6 +141,8 @@ class FrugalNeRFModel(Model):
         self.upsample_voxels = log_linear_voxel_counts(
             self.config.initial_voxels, self.config.final_voxels, len(self.config.upsample_iters)
         )
+        # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
+        self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
         self.psnr = PeakSignalNoiseRatio(data_range=1.0)
         self.ssim = structural_similarity_index_measure
         self.lpips = OfflineLPIPS()
@@ -214,6 +217,10 @@ class FrugalNeRFModel(Model):
         shape = ray_bundle.origins.shape[:-1]
         origins = ray_bundle.origins.reshape(-1, 3)
         directions = ray_bundle.directions.reshape(-1, 3)
+        ndc_rays = None
+        if self.ndc is not None:
+            ndc_rays = rays_to_ndc(origins, directions, **self.ndc)
+            origins, directions = ndc_rays.origins, ndc_rays.directions
         background = self._background(origins.device)
         # The background travels with the outputs so the loss composites the target on the same one.
         outputs: Dict[str, Tensor] = {"background": background} if self.training else {}
@@ -221,7 +228,11 @@ class FrugalNeRFModel(Model):
             render = self.render_scale(origins, directions, scale, background)
             suffix = scale_suffix(scale)
             outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)
-            outputs[f"depth{suffix}"] = render.depth.reshape(*shape, 1)
+            depth = render.depth
+            if ndc_rays is not None:
+                # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
+                depth = metric_distance_from_ndc(depth[:, 0], ndc_rays, self.ndc["near"])[:, None]
+            outputs[f"depth{suffix}"] = depth.reshape(*shape, 1)
             outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
             if self.training:
                 outputs[f"weights{suffix}"] = render.weights
@@ -298,21 +309,49 @@ class FrugalNeRFModel(Model):
         image = self._target_rgb(batch["image"].to(self.device), background)
         to_nchw = lambda x: torch.moveaxis(x, -1, 0)[None]  # noqa: E731
         rgb = outputs["rgb"].clamp(0, 1)
-        metrics = {
-            "psnr": float(self.psnr(to_nchw(image), to_nchw(rgb))),
-            "ssim": float(self.ssim(to_nchw(image), to_nchw(rgb))),
-            "lpips": float(self.lpips(to_nchw(image), to_nchw(rgb))),
-        }
+        mask = batch.get("eval_mask")
+        if mask is not None:
+            metrics = masked_image_metrics(rgb, image, mask.to(self.device), self.ssim, self.lpips)
+        else:
+            metrics = {
+                "psnr": float(self.psnr(to_nchw(image), to_nchw(rgb))),
+                "ssim": float(self.ssim(to_nchw(image), to_nchw(rgb))),
+                "lpips": float(self.lpips(to_nchw(image), to_nchw(rgb))),
+            }
         images = {"img": torch.cat([image, rgb], dim=1)}
         for scale in range(self.field.num_scales):
             suffix = scale_suffix(scale)
             if scale > 0:
-                metrics[f"psnr{suffix}"] = float(self.psnr(to_nchw(image), to_nchw(outputs[f"rgb{suffix}"])))
+                pred = outputs[f"rgb{suffix}"].clamp(0, 1)
+                metrics[f"psnr{suffix}"] = (
+                    masked_psnr(pred, image, mask.to(self.device)) if mask is not None
+                    else float(self.psnr(to_nchw(image), to_nchw(pred)))
+                )
             images[f"depth{suffix}"] = colormaps.apply_depth_colormap(
                 outputs[f"depth{suffix}"], accumulation=outputs[f"accumulation{suffix}"]
             )
             images[f"accumulation{suffix}"] = colormaps.apply_colormap(outputs[f"accumulation{suffix}"])
         return metrics, images
+
+
+def masked_psnr(rgb: Tensor, image: Tensor, mask: Tensor) -> float:
+    """PSNR over the pixels where ``mask`` is set (an empty mask counts as one pixel, never a division by 0)."""
+    mask = mask.to(rgb.dtype)
+    mse = (((rgb - image) ** 2) * mask).sum() / (mask.sum().clamp_min(1.0) * rgb.shape[-1])
+    return float(-10.0 * torch.log10(mse.clamp_min(1e-10)))
+
+
+def masked_image_metrics(rgb: Tensor, image: Tensor, mask: Tensor, ssim, lpips) -> Dict[str, float]:
+    """DTU protocol (RegNeRF / SparseNeRF): PSNR over the object's pixels; SSIM and LPIPS on both images
+    with the background set to black."""
+    mask = mask.to(rgb.dtype)
+    to_nchw = lambda x: torch.moveaxis(x, -1, 0)[None]  # noqa: E731
+    masked_rgb, masked_image = to_nchw(rgb * mask), to_nchw(image * mask)
+    return {
+        "psnr": masked_psnr(rgb, image, mask),
+        "ssim": float(ssim(masked_image, masked_rgb)),
+        "lpips": float(lpips(masked_image, masked_rgb)),
+    }
 
 
 def _restart_grid_optimizer(attributes: TrainingCallbackAttributes) -> None:

@@ -14,14 +14,14 @@ from typing import Any, Dict, Mapping, Tuple
 import yaml
 import torch
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
-from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from frugalnerf_ns.data import FrugalNerfstudioDataParserConfig
+from frugalnerf_ns.datamanager import FrugalDataManagerConfig
+from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig
 from frugalnerf_ns.model import FrugalNeRFModelConfig
 
 
@@ -62,7 +62,7 @@ def base_trainer_config(method_name: str) -> TrainerConfig:
     return TrainerConfig(
         method_name=method_name,
         pipeline=VanillaPipelineConfig(
-            datamanager=VanillaDataManagerConfig(dataparser=FrugalNerfstudioDataParserConfig()),
+            datamanager=FrugalDataManagerConfig(dataparser=AutoDataParserConfig()),
             model=FrugalNeRFModelConfig(),
         ),
         optimizers={
@@ -118,3 +118,4 @@ def method_specification(name: str) -> MethodSpecification:
 frugalnerf = method_specification("frugalnerf")
 frugalnerf_tiny = method_specification("frugalnerf-tiny")
 frugalnerf_dtu = method_specification("frugalnerf-dtu")
+frugalnerf_cpu = method_specification("frugalnerf-cpu")

@@ -67,7 +67,7 @@ def test_paper_preset_trains_on_cpu(procedural_scene, tmp_path):
         [
             str(exe), "frugalnerf", "--data", str(procedural_scene), "--output-dir", str(tmp_path),
             "--vis", "tensorboard", "--max-num-iterations", "3", "--steps-per-save", "2",
-            "frugal-nerfstudio", "--center-method", "focus",
+            "frugal-auto", "--center-method", "focus",
         ],
         capture_output=True,
         text=True,

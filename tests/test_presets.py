@@ -9,7 +9,7 @@ def test_entry_points_register_the_methods():
     names = {ep.name for ep in entry_points(group="nerfstudio.method_configs")}
     assert {"frugalnerf", "frugalnerf-tiny", "frugalnerf-dtu"} <= names
     parsers = {ep.name for ep in entry_points(group="nerfstudio.dataparser_configs")}
-    assert "frugal-nerfstudio" in parsers
+    assert {"frugal-auto", "frugal-llff", "frugal-dtu", "frugal-realestate", "frugal-nerfstudio", "frugal-colmap"} <= parsers
 
 
 def test_nerfstudio_discovers_the_methods():

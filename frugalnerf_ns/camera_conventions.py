@@ -1,0 +1,56 @@
+"""Camera conventions of the supported layouts, converted to nerfstudio's (OpenGL: x right, y up, looking
+down -z; camera-to-world 3x4). Pure numpy/torch, tested without nerfstudio."""
+
+from __future__ import annotations
+
+from typing import Tuple
+
+import numpy as np
+
+
+def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
+    """LLFF's camera axes are (down, right, backwards); nerfstudio's are (right, up, backwards)."""
+    out = poses.copy()
+    out[:, :, 0] = poses[:, :, 1]
+    out[:, :, 1] = -poses[:, :, 0]
+    return out
+
+
+def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
+    """OpenCV cameras look down +z with y down: flip the y and z axes."""
+    out = c2w.copy()
+    out[..., :3, 1:3] *= -1.0
+    return out
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def average_pose(poses: np.ndarray) -> np.ndarray:
+    """LLFF's mean camera (3x4): mean centre, mean viewing axis, mean up."""
+    center = poses[:, :3, 3].mean(axis=0)
+    back = _normalize(poses[:, :3, 2].sum(axis=0))
+    up = poses[:, :3, 1].sum(axis=0)
+    right = _normalize(np.cross(up, back))
+    up = np.cross(back, right)
+    return np.stack([right, up, back, center], axis=1)
+
+
+def recenter(poses: np.ndarray) -> np.ndarray:
+    """Express the poses in the frame of their average camera, so NDC's -z is the mean viewing direction."""
+    avg = np.eye(4)
+    avg[:3] = average_pose(poses)
+    homogeneous = np.concatenate([poses[:, :3, :4], np.tile([[[0, 0, 0, 1.0]]], (poses.shape[0], 1, 1))], axis=1)
+    return (np.linalg.inv(avg) @ homogeneous)[:, :3]
+
+
+def decompose_projection(projection: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Split a 3x4 projection P = K [R | t] into K (3x3, K[2,2] = 1) and the OpenCV camera-to-world (3x4)."""
+    import cv2
+
+    out = cv2.decomposeProjectionMatrix(projection.astype(np.float64))
+    K, R, center = out[0], out[1], out[2]
+    K = K / K[2, 2]
+    c2w = np.concatenate([R.T, (center[:3] / center[3])], axis=1)
+    return K, c2w

@@ -1,0 +1,155 @@
+"""Tiny synthetic scenes in each supported layout, with a known 3D point and where each camera sees it.
+
+Cameras are built in OpenCV convention (x right, y down, looking down +z), K in pixels of the written
+images. Each writer returns the expected pixel (u, v) of POINT in every frame, in filename order.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Tuple
+
+import numpy as np
+from PIL import Image
+
+POINT = np.array([0.3, -0.2, 0.25])
+WIDTH, HEIGHT = 40, 30
+
+
+def opencv_cameras(count: int, forward_facing: bool) -> List[Tuple[np.ndarray, np.ndarray]]:
+    """(K, world-to-camera 4x4) per frame; forward-facing rigs translate sideways, others circle the point."""
+    K = np.array([[36.0, 0.0, 19.0], [0.0, 35.0, 16.0], [0.0, 0.0, 1.0]])
+    out = []
+    for i in range(count):
+        a = (i - (count - 1) / 2) / count
+        if forward_facing:
+            center = np.array([a * 0.8, 0.1 * np.sin(3 * a), -4.0])
+            target = np.array([a * 0.2, 0.0, 5.0])
+        else:
+            center = 4.0 * np.array([np.sin(a * 1.5), -0.4, -np.cos(a * 1.5)])
+            target = np.zeros(3)
+        z = target - center
+        z /= np.linalg.norm(z)
+        x = np.cross(np.array([0.0, -1.0, 0.0]), z)  # y points down in OpenCV
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        w2c = np.eye(4)
+        w2c[:3, :3] = np.stack([x, y, z])
+        w2c[:3, 3] = -w2c[:3, :3] @ center
+        out.append((K.copy(), w2c))
+    return out
+
+
+def project(K: np.ndarray, w2c: np.ndarray, point: np.ndarray = POINT) -> Tuple[float, float]:
+    p = K @ (w2c[:3, :3] @ point + w2c[:3, 3])
+    return float(p[0] / p[2]), float(p[1] / p[2])
+
+
+def write_images(folder: Path, names: List[str], size=(WIDTH, HEIGHT)) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, name in enumerate(names):
+        Image.fromarray(np.full((size[1], size[0], 3), 10 * i, dtype=np.uint8)).save(folder / name)
+
+
+def opengl_c2w(w2c: np.ndarray) -> np.ndarray:
+    c2w = np.linalg.inv(w2c)
+    c2w[:3, 1:3] *= -1
+    return c2w
+
+
+def write_llff(root: Path, count: int = 10, factor: int = 2) -> List[Tuple[float, float]]:
+    """poses_bounds.npy at full resolution (factor x the images in images_<factor>/)."""
+    rows, pixels = [], []
+    for K, w2c in opencv_cameras(count, forward_facing=True):
+        c2w = opengl_c2w(w2c)  # columns: right, up, back
+        llff = np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3]], axis=1)  # down, right, back
+        hwf = np.array([HEIGHT * factor, WIDTH * factor, K[0, 0] * factor])
+        rows.append(np.concatenate([np.concatenate([llff, hwf[:, None]], axis=1).ravel(), [1.0, 12.0]]))
+        # LLFF has one focal and the principal point at the centre.
+        K_centre = np.array([[K[0, 0], 0, WIDTH / 2], [0, K[0, 0], HEIGHT / 2], [0, 0, 1]])
+        pixels.append(project(K_centre, w2c))
+    root.mkdir(parents=True, exist_ok=True)
+    np.save(root / "poses_bounds.npy", np.array(rows))
+    write_images(root / f"images_{factor}", [f"image{i:03d}.png" for i in range(count)])
+    return pixels
+
+
+def write_dtu(root: Path, count: int = 10, factor: int = 4) -> List[Tuple[float, float]]:
+    """cameras_sphere.npz whose intrinsics refer to factor x the image size, with a scale matrix."""
+    cams, pixels = {}, []
+    scale_mat = np.diag([2.0, 2.0, 2.0, 1.0])
+    scale_mat[:3, 3] = [0.5, -0.3, 0.2]
+    for i, (K, w2c) in enumerate(opencv_cameras(count, forward_facing=False)):
+        full = K.copy()
+        full[:2] *= factor
+        world = np.eye(4)
+        world[:3, :4] = full @ w2c[:3]
+        # world_mat projects WORLD points; our fixture cameras live in the sphere frame: compose.
+        cams[f"world_mat_{i}"] = world @ np.linalg.inv(scale_mat)
+        cams[f"scale_mat_{i}"] = scale_mat
+        pixels.append(project(K, w2c))
+    root.mkdir(parents=True, exist_ok=True)
+    np.savez(root / "cameras_sphere.npz", **cams)
+    write_images(root / "image", [f"{i:06d}.png" for i in range(count)])
+    masks = root / "mask"
+    masks.mkdir()
+    for i in range(count):
+        mask = np.zeros((HEIGHT, WIDTH, 3), dtype=np.uint8)
+        mask[5:20, 10:30] = 255
+        Image.fromarray(mask).save(masks / f"{i:03d}.png")
+    return pixels
+
+
+def write_realestate(root: Path, count: int = 40) -> List[Tuple[float, float]]:
+    intr, extr, pixels = [], [], []
+    for K, w2c in opencv_cameras(count, forward_facing=True):
+        intr.append(K.ravel())
+        extr.append(w2c.ravel())
+        pixels.append(project(K, w2c))
+    root.mkdir(parents=True, exist_ok=True)
+    np.savetxt(root / "CameraIntrinsics.csv", np.array(intr), delimiter=",")
+    np.savetxt(root / "CameraExtrinsics.csv", np.array(extr), delimiter=",")
+    write_images(root / "rgb", [f"{i:04d}.png" for i in range(count)])
+    return pixels
+
+
+def write_nerfstudio(root: Path, count: int = 10) -> List[Tuple[float, float]]:
+    frames, pixels = [], []
+    for i, (K, w2c) in enumerate(opencv_cameras(count, forward_facing=False)):
+        frames.append({
+            "file_path": f"images/frame_{i:05d}.png", "transform_matrix": opengl_c2w(w2c).tolist(),
+            "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": WIDTH, "h": HEIGHT,
+        })
+        pixels.append(project(K, w2c))
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "transforms.json").write_text(json.dumps({"camera_model": "OPENCV", "frames": frames}))
+    write_images(root / "images", [f"frame_{i:05d}.png" for i in range(count)])
+    return pixels
+
+
+def pixel_rays(cameras, pixels: List[Tuple[float, float]]):
+    """World rays (nerfstudio's OpenGL cameras) through continuous pixel positions, one per camera."""
+    import torch
+
+    c2w = cameras.camera_to_worlds.double()
+    u = torch.tensor([p[0] for p in pixels], dtype=torch.float64)
+    v = torch.tensor([p[1] for p in pixels], dtype=torch.float64)
+    fx, fy = cameras.fx[:, 0].double(), cameras.fy[:, 0].double()
+    cx, cy = cameras.cx[:, 0].double(), cameras.cy[:, 0].double()
+    local = torch.stack([(u - cx) / fx, -(v - cy) / fy, -torch.ones_like(u)], dim=-1)
+    dirs = torch.einsum("nij,nj->ni", c2w[:, :3, :3], local)
+    return c2w[:, :3, 3], torch.nn.functional.normalize(dirs, dim=-1)
+
+
+def closest_points(o1, d1, o2, d2):
+    """Closest points of two rays, and their distances along the rays."""
+    import torch
+
+    w = o1 - o2
+    a, b, c = (d1 * d1).sum(), (d1 * d2).sum(), (d2 * d2).sum()
+    d, e = (d1 * w).sum(), (d2 * w).sum()
+    denom = a * c - b * b
+    s = (b * e - c * d) / denom
+    t = (a * e - b * d) / denom
+    return o1 + s * d1, o2 + t * d2, s, t

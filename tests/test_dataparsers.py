@@ -1,0 +1,193 @@
+"""Every layout round-trips: the parsed cameras see the fixture's 3D point at the pixels it was put at.
+
+Parsers normalise the world (recentring, scaling, unit sphere), so the check is frame-free: rays through the
+expected pixels of every camera must meet in one point in front of all of them. Axis-order or
+OpenCV/OpenGL mistakes make them miss.
+"""
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from frugalnerf_ns.data import DataError
+from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig, detect_layout
+from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
+from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
+from frugalnerf_ns.dataparsers.nerfstudio_format import FewShotNerfstudioDataParserConfig
+from frugalnerf_ns.dataparsers.realestate import RealEstateDataParserConfig
+from tests import layout_fixtures as fx
+
+LAYOUTS = {
+    "llff": (fx.write_llff, lambda d: LLFFDataParserConfig(data=d, downscale_factor=2, train_views=(1, 3, 5, 7, 9),
+                                                            test_views=(0, 2, 4, 6, 8))),
+    "dtu": (fx.write_dtu, lambda d: DTUDataParserConfig(data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
+    "realestate": (fx.write_realestate, lambda d: RealEstateDataParserConfig(data=d, num_train_views=4)),
+    "nerfstudio": (fx.write_nerfstudio, lambda d: FewShotNerfstudioDataParserConfig(
+        data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
+}
+
+
+def all_views(config, pixels):
+    """Cameras and expected pixels of the train and test splits together."""
+    parser = config.setup()
+    cams, pix = [], []
+    for split in ("train", "test"):
+        outputs = parser.get_dataparser_outputs(split)
+        names = [p.name for p in outputs.image_filenames]
+        cams.append(outputs.cameras)
+        all_names = sorted(p.name for p in outputs.image_filenames[0].parent.iterdir())
+        pix += [pixels[all_names.index(n)] for n in names]
+    return cams, pix, outputs
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_parsed_cameras_see_the_point_where_the_fixture_put_it(layout, tmp_path):
+    write, make_config = LAYOUTS[layout]
+    pixels = write(tmp_path / layout)
+    cams, pix, _ = all_views(make_config(tmp_path / layout), pixels)
+    origins, dirs = [], []
+    offset = 0
+    for cameras in cams:
+        o, d = fx.pixel_rays(cameras, pix[offset : offset + len(cameras)])
+        origins.append(o)
+        dirs.append(d)
+        offset += len(cameras)
+    origins, dirs = torch.cat(origins), torch.cat(dirs)
+    scale = (origins - origins.mean(0)).norm(dim=-1).max()
+    meeting = []
+    for j in range(1, len(origins)):
+        p, q, s, t = fx.closest_points(origins[0], dirs[0], origins[j], dirs[j])
+        assert (p - q).norm() < 1e-4 * scale, f"{layout}: rays of views 0 and {j} miss each other"
+        assert s > 0 and t > 0, f"{layout}: the point is behind a camera"
+        meeting.append(p)
+    meeting = torch.stack(meeting)
+    assert (meeting - meeting.mean(0)).norm(dim=-1).max() < 1e-4 * scale
+
+
+def test_dtu_intrinsics_are_scaled_to_the_loaded_images(tmp_path):
+    fx.write_dtu(tmp_path / "dtu")
+    outputs = DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)).setup().get_dataparser_outputs("train")
+    assert torch.allclose(outputs.cameras.fx[:, 0], torch.tensor([36.0, 36.0]), atol=1e-3)
+    assert torch.allclose(outputs.cameras.cx[:, 0], torch.tensor([19.0, 19.0]), atol=1e-3)
+    assert int(outputs.cameras.width[0, 0]) == fx.WIDTH
+
+
+def test_dtu_test_split_carries_eval_masks_and_train_split_does_not(tmp_path):
+    fx.write_dtu(tmp_path / "dtu")
+    parser = DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)).setup()
+    assert "eval_mask_filenames" not in parser.get_dataparser_outputs("train").metadata
+    test = parser.get_dataparser_outputs("test")
+    assert [p.name for p in test.metadata["eval_mask_filenames"]] == ["000.png", "008.png"]
+
+
+def test_llff_ndc_metadata_and_box(tmp_path):
+    fx.write_llff(tmp_path / "llff")
+    outputs = LLFFDataParserConfig(data=tmp_path / "llff", downscale_factor=2).setup().get_dataparser_outputs("train")
+    ndc = outputs.metadata["ndc"]
+    assert ndc["width"] == fx.WIDTH and ndc["height"] == fx.HEIGHT and abs(ndc["focal"] - 36.0) < 1e-6
+    assert torch.allclose(outputs.scene_box.aabb, torch.tensor([[-1.5, -1.67, -1.0], [1.5, 1.67, 1.0]]))
+    # The nearest bound is scaled to 1 / 0.75, in front of NDC's near plane at 1.
+    assert abs(outputs.metadata["near_far"][0] - 1 / 0.75) < 1e-6
+    # Recentred: the mean camera looks down -z.
+    c2w = outputs.cameras.camera_to_worlds
+    assert (c2w[:, 2, 2] > 0.9).all()
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUTS))
+def test_auto_detects_each_layout(layout, tmp_path):
+    LAYOUTS[layout][0](tmp_path / layout)
+    name, config_type = detect_layout(tmp_path / layout)
+    assert config_type is type(LAYOUTS[layout][1](tmp_path))
+    factor = 2 if layout == "llff" else None  # the fixture writes images_2/
+    outputs = AutoDataParserConfig(data=tmp_path / layout, downscale_factor=factor).setup().get_dataparser_outputs("train")
+    assert len(outputs.image_filenames) >= 2
+
+
+def test_auto_names_the_layouts_it_looked_for(tmp_path):
+    fx.write_images(tmp_path / "x" / "pics", ["a.png", "b.png"])
+    with pytest.raises(DataError) as err:
+        detect_layout(tmp_path / "x")
+    message = str(err.value)
+    for needle in ("2 images but no cameras", "LLFF", "DTU", "RealEstate", "transforms.json", "COLMAP"):
+        assert needle in message
+
+
+def test_auto_passes_few_shot_options_on(tmp_path):
+    fx.write_llff(tmp_path / "llff")
+    config = AutoDataParserConfig(data=tmp_path / "llff", downscale_factor=2, train_views=(2, 5))
+    outputs = config.setup().get_dataparser_outputs("train")
+    assert [p.name for p in outputs.image_filenames] == ["image002.png", "image005.png"]
+
+
+# ---- bad input ----------------------------------------------------------------------------------------------
+def llff_scene(tmp_path):
+    fx.write_llff(tmp_path / "llff")
+    return tmp_path / "llff"
+
+
+def parse_llff(scene, split="train"):
+    return LLFFDataParserConfig(data=scene, downscale_factor=2).setup().get_dataparser_outputs(split)
+
+
+def test_truncated_poses_bounds(tmp_path):
+    scene = llff_scene(tmp_path)
+    data = (scene / "poses_bounds.npy").read_bytes()
+    (scene / "poses_bounds.npy").write_bytes(data[: len(data) // 2])
+    with pytest.raises(DataError, match="poses_bounds.npy is unreadable or truncated"):
+        parse_llff(scene)
+
+
+def test_wrong_poses_bounds_shape(tmp_path):
+    scene = llff_scene(tmp_path)
+    np.save(scene / "poses_bounds.npy", np.ones((10, 15)))
+    with pytest.raises(DataError, match=r"shape \(10, 15\).*N x 17"):
+        parse_llff(scene)
+
+
+def test_image_count_must_match_pose_count(tmp_path):
+    scene = llff_scene(tmp_path)
+    (scene / "images_2" / "image009.png").unlink()
+    with pytest.raises(DataError, match="10 poses but .*images_2 has 9 images"):
+        parse_llff(scene)
+
+
+def test_nan_pose_names_the_row(tmp_path):
+    scene = llff_scene(tmp_path)
+    rows = np.load(scene / "poses_bounds.npy")
+    rows[4, 3] = np.nan
+    np.save(scene / "poses_bounds.npy", rows)
+    with pytest.raises(DataError, match=r"row\(s\) \[4\] contain NaN"):
+        parse_llff(scene)
+
+
+def test_unreadable_image_names_the_file(tmp_path):
+    scene = llff_scene(tmp_path)
+    (scene / "images_2" / "image001.png").write_bytes(b"not a png")
+    with pytest.raises(DataError, match="image001.png is unreadable or corrupt"):
+        LLFFDataParserConfig(data=scene, downscale_factor=2, train_views=(1, 3)).setup().get_dataparser_outputs("train")
+
+
+def test_missing_images_folder_and_bad_view(tmp_path):
+    scene = llff_scene(tmp_path)
+    with pytest.raises(DataError, match="images_8 not found"):
+        LLFFDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
+    with pytest.raises(DataError, match=r"train view\(s\) \[12\] do not exist"):
+        LLFFDataParserConfig(data=scene, downscale_factor=2, train_views=(1, 12)).setup().get_dataparser_outputs("train")
+
+
+def test_realestate_rows_must_match_frames(tmp_path):
+    fx.write_realestate(tmp_path / "re", count=12)
+    rows = np.loadtxt(tmp_path / "re" / "CameraExtrinsics.csv", delimiter=",")
+    np.savetxt(tmp_path / "re" / "CameraExtrinsics.csv", rows[:-1], delimiter=",")
+    with pytest.raises(DataError, match="12 frames in rgb/ but 12 intrinsics and 11 extrinsics rows"):
+        RealEstateDataParserConfig(data=tmp_path / "re").setup().get_dataparser_outputs("train")
+
+
+def test_nerfstudio_few_shot_conflicts_with_its_own_split_lists(tmp_path, procedural_scene):
+    with pytest.raises(DataError, match="defines its own split"):
+        FewShotNerfstudioDataParserConfig(data=procedural_scene, num_train_views=2).setup().get_dataparser_outputs()
+    # Without few-shot options the file's own split is used.
+    outputs = FewShotNerfstudioDataParserConfig(data=procedural_scene).setup().get_dataparser_outputs("train")
+    assert len(outputs.image_filenames) == 3
