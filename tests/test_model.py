@@ -11,7 +11,7 @@ from nerfstudio.data.scene_box import SceneBox
 from frugalnerf_ns.model import FrugalNeRFModelConfig, scale_suffix
 
 
-def tiny_model(**overrides):
+def tiny_model(metadata=None, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), **overrides):
     fields = dict(
         initial_voxels=16**3,
         final_voxels=24**3,
@@ -26,9 +26,9 @@ def tiny_model(**overrides):
     )
     fields.update(overrides)
     config = FrugalNeRFModelConfig(**fields)
-    box = SceneBox(aabb=torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    box = SceneBox(aabb=torch.tensor(aabb))
     torch.manual_seed(0)
-    return config.setup(scene_box=box, num_train_data=3)
+    return config.setup(scene_box=box, num_train_data=3, metadata=metadata or {})
 
 
 def ray_bundle(n=64):
@@ -170,3 +170,44 @@ def test_image_metrics_include_psnr_ssim_lpips_and_per_scale_images():
     assert {"psnr_scale1", "psnr_scale2"} <= set(metrics)
     assert images["img"].shape == (64, 128, 3)
     assert {"depth", "depth_scale1", "depth_scale2", "accumulation_scale2"} <= set(images)
+
+
+def test_ndc_scenes_render_in_ndc_and_report_metric_depth():
+    ndc = {"focal": 40.0, "width": 40.0, "height": 30.0, "near": 1.0}
+    model = tiny_model(metadata={"ndc": ndc}, aabb=((-1.5, -1.67, -1.0), (1.5, 1.67, 1.0)))
+    model.eval()
+    n = 16
+    origins = torch.zeros(n, 3)
+    directions = torch.nn.functional.normalize(torch.cat([(torch.rand(n, 2) - 0.5) * 0.5, -torch.ones(n, 1)], -1), dim=-1)
+    bundle = RayBundle(origins=origins, directions=directions, pixel_area=torch.ones(n, 1), camera_indices=torch.zeros(n, 1).long())
+    outputs = model.get_outputs(bundle)
+    for scale in range(3):
+        depth = outputs[f"depth{scale_suffix(scale)}"]
+        assert torch.isfinite(depth).all()
+        # Metric distances start at the near plane (1) and reach far beyond the NDC box's extent of 2.
+        assert (depth >= 1.0 - 1e-4).all()
+    assert float(outputs["depth"].max()) > 2.0
+
+
+def test_masked_metrics_ignore_the_background():
+    from frugalnerf_ns.model import masked_psnr
+
+    model = tiny_model()
+    image = torch.rand(64, 64, 3)
+    rgb = image.clone()
+    rgb[:, :32] = 1.0 - rgb[:, :32]  # wrong only in the left half
+    mask = torch.zeros(64, 64, 1, dtype=torch.bool)
+    mask[:, 32:] = True
+    outputs = {}
+    for s in range(3):
+        suffix = scale_suffix(s)
+        outputs[f"rgb{suffix}"], outputs[f"depth{suffix}"], outputs[f"accumulation{suffix}"] = rgb, torch.rand(64, 64, 1), torch.ones(64, 64, 1)
+    metrics, _ = model.get_image_metrics_and_images(outputs, {"image": image, "eval_mask": mask})
+    assert metrics["psnr"] > 90 and metrics["psnr_scale1"] > 90 and metrics["lpips"] < 1e-5
+    unmasked, _ = model.get_image_metrics_and_images(outputs, {"image": image})
+    assert unmasked["psnr"] < 20
+    # PSNR over the mask: an error of 0.1 on masked pixels only gives 20 dB whatever the rest is.
+    off = image.clone()
+    off[:, 32:] += 0.1
+    off[:, :32] = 0.0
+    assert abs(masked_psnr(off, image, mask) - 20.0) < 1e-3
