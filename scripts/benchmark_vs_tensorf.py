@@ -29,27 +29,6 @@ TARGET_RATIO = 1.5
 
 
 # ---- worker (one method, own process) ----------------------------------------------------------------------
-def _patch_lpips_download() -> None:
-    """tensorf builds torchmetrics' LPIPS, which downloads AlexNet; give it the offline one instead."""
-    import torch
-    import torchmetrics.image.lpip as lpip
-
-    from frugalnerf_ns.lpips_offline import OfflineLPIPS
-
-    class OfflineLearnedPerceptualImagePatchSimilarity(torch.nn.Module):
-        def __init__(self, normalize: bool = True, **_: Any) -> None:
-            super().__init__()
-            self.net = OfflineLPIPS()
-            self.normalize = normalize
-
-        def forward(self, a, b):
-            if not self.normalize:  # inputs in [-1, 1]
-                a, b = (a + 1) / 2, (b + 1) / 2
-            return self.net(a, b).mean()
-
-    lpip.LearnedPerceptualImagePatchSimilarity = OfflineLearnedPerceptualImagePatchSimilarity  # type: ignore
-
-
 def _trainer_config(method: str, args: argparse.Namespace):
     from nerfstudio.configs.method_configs import method_configs
     from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
@@ -96,8 +75,9 @@ def run_worker(method: str, args: argparse.Namespace) -> Dict[str, Any]:
     from torchmetrics.functional import structural_similarity_index_measure
 
     from frugalnerf_ns.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.offline_tools import patch_torchmetrics_lpips
 
-    _patch_lpips_download()
+    patch_torchmetrics_lpips()
     torch.manual_seed(0)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     config = _trainer_config(method, args)

@@ -1,0 +1,90 @@
+"""Run and score any nerfstudio method offline, the same way for FrugalNeRF and its baselines.
+
+``python -m frugalnerf_ns.offline_tools train <ns-train args>``: nerfstudio's ns-train, except that
+torchmetrics' LPIPS (which tensorf and nerfacto build at start-up and which downloads AlexNet) is replaced
+by the offline LPIPS of this package, so baselines train on a machine without network.
+
+``python -m frugalnerf_ns.offline_tools eval <run>/config.yml``: renders the test views of a trained run
+and prints PSNR / SSIM / LPIPS as JSON, computed by one piece of code for every method, with the DTU
+object masks when the dataparser provides them (so baselines are scored on the paper's protocol too).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+import torch
+from PIL import Image
+
+
+def patch_torchmetrics_lpips() -> None:
+    """Make ``torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity`` the offline LPIPS."""
+    import torchmetrics.image.lpip as lpip
+
+    from frugalnerf_ns.lpips_offline import OfflineLPIPS
+
+    class OfflineLearnedPerceptualImagePatchSimilarity(torch.nn.Module):
+        def __init__(self, normalize: bool = False, **_: object) -> None:
+            super().__init__()
+            self.net = OfflineLPIPS()
+            self.normalize = normalize
+
+        def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+            if not self.normalize:  # torchmetrics' default: inputs in [-1, 1]
+                a, b = (a + 1) / 2, (b + 1) / 2
+            return self.net(a, b).mean()
+
+    lpip.LearnedPerceptualImagePatchSimilarity = OfflineLearnedPerceptualImagePatchSimilarity  # type: ignore
+
+
+def evaluate_run(config_path: Path) -> Dict[str, float]:
+    """Test-view PSNR / SSIM / LPIPS of a trained run (masked where the dataparser gives eval masks)."""
+    from nerfstudio.utils.eval_utils import eval_setup
+    from torchmetrics.functional import structural_similarity_index_measure as ssim
+
+    from frugalnerf_ns.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.model import masked_image_metrics
+
+    patch_torchmetrics_lpips()
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="test")
+    dataset = pipeline.datamanager.eval_dataset
+    masks = dataset.metadata.get("eval_mask_filenames")
+    lpips = OfflineLPIPS().to(pipeline.device)
+    scores: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": []}
+    pipeline.eval()
+    for index in range(len(dataset)):
+        camera = dataset.cameras[index : index + 1].to(pipeline.device)
+        with torch.no_grad():
+            rgb = pipeline.model.get_outputs_for_camera(camera)["rgb"].clamp(0, 1)
+        image = dataset[index]["image"][..., :3].to(rgb)
+        if masks:
+            with Image.open(masks[index]) as img:
+                mask = torch.from_numpy(np.array(img.convert("L").resize(image.shape[1::-1])) > 127)[..., None]
+        else:
+            mask = torch.ones(*image.shape[:2], 1, dtype=torch.bool)
+        for name, value in masked_image_metrics(rgb, image, mask.to(rgb.device), ssim, lpips).items():
+            scores[name].append(value)
+    return {name: statistics.fmean(values) for name, values in scores.items()} | {"num_test_views": len(dataset)}
+
+
+def main() -> None:
+    if len(sys.argv) < 2 or sys.argv[1] not in ("train", "eval"):
+        sys.exit("usage: python -m frugalnerf_ns.offline_tools train <ns-train args> | eval <config.yml>")
+    command, rest = sys.argv[1], sys.argv[2:]
+    if command == "train":
+        patch_torchmetrics_lpips()
+        from nerfstudio.scripts.train import entrypoint
+
+        sys.argv = ["ns-train", *rest]
+        entrypoint()
+    else:
+        print("RESULT " + json.dumps(evaluate_run(Path(rest[0]))))
+
+
+if __name__ == "__main__":
+    main()

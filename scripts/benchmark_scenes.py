@@ -1,0 +1,132 @@
+"""Train and evaluate FrugalNeRF (and optionally nerfstudio baselines) on the scenes of a config file.
+
+Every run goes through ``python -m frugalnerf_ns.offline_tools`` (ns-train with offline LPIPS) and is scored
+by the same evaluator (masked for DTU). Writes a Markdown table and JSON: per scene and the average, PSNR /
+SSIM / LPIPS / training time / checkpoint size / peak memory, side by side.
+
+Usage:
+  python scripts/benchmark_scenes.py [--config configs/benchmark_scenes.yaml] [--scenes fern dtu_scan65]
+         [--baselines tensorf nerfacto] [--preset frugalnerf-cpu] [--max-iterations N] [--out outputs/benchmark]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+QUIET = ["--vis", "tensorboard", "--steps-per-eval-image", "1000000", "--steps-per-eval-batch", "1000000",
+         "--steps-per-eval-all-images", "1000000"]
+
+
+def device_args() -> List[str]:
+    """nerfstudio's methods default to CUDA; use the CPU where there is no GPU."""
+    import torch
+
+    return [] if torch.cuda.is_available() else ["--machine.device-type", "cpu"]
+
+
+def run_method(method: str, scene: str, data: Path, parser_args: List[str], extra: List[str], out: Path) -> Dict[str, Any]:
+    timestamp = "bench"
+    run_dir = out / "runs" / scene / method / timestamp
+    train = [
+        "/usr/bin/time", "-f", "PEAK_RSS_KB %M",
+        sys.executable, "-m", "frugalnerf_ns.offline_tools", "train", method, "--data", str(data),
+        "--output-dir", str(out / "runs"), "--experiment-name", scene, "--timestamp", timestamp, *QUIET, *device_args(), *extra,
+        *parser_args,
+    ]
+    start = time.time()
+    proc = subprocess.run(train, capture_output=True, text=True)
+    seconds = time.time() - start
+    if proc.returncode != 0:
+        sys.exit(f"benchmark: training {method} on {scene} failed:\n{proc.stderr[-3000:]}")
+    peak = [line for line in proc.stderr.splitlines() if line.startswith("PEAK_RSS_KB")]
+    evaluation = subprocess.run(
+        [sys.executable, "-m", "frugalnerf_ns.offline_tools", "eval", str(run_dir / "config.yml")],
+        capture_output=True, text=True,
+    )
+    lines = [line for line in evaluation.stdout.splitlines() if line.startswith("RESULT ")]
+    if evaluation.returncode != 0 or not lines:
+        sys.exit(f"benchmark: evaluating {method} on {scene} failed:\n{evaluation.stderr[-3000:]}")
+    ckpt = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))[-1]
+    return {
+        "scene": scene,
+        "method": method,
+        **json.loads(lines[-1][len("RESULT "):]),
+        "train_seconds": seconds,
+        "checkpoint_mb": ckpt.stat().st_size / 1e6,
+        "peak_rss_mib": int(peak[-1].split()[1]) / 1024 if peak else None,
+        "run_dir": str(run_dir),
+    }
+
+
+def markdown(results: List[Dict[str, Any]]) -> str:
+    rows = ["| scene | method | PSNR | SSIM | LPIPS | train time | checkpoint MB | peak RSS MiB |", "|---" * 8 + "|"]
+    methods = list(dict.fromkeys(r["method"] for r in results))
+    scenes = list(dict.fromkeys(r["scene"] for r in results))
+    for r in results:
+        rows.append(
+            f"| {r['scene']} | {r['method']} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['lpips']:.3f} | "
+            f"{r['train_seconds'] / 60:.1f} min | {r['checkpoint_mb']:.1f} | {r['peak_rss_mib'] or 0:.0f} |"
+        )
+    if len(scenes) > 1:
+        for m in methods:
+            rs = [r for r in results if r["method"] == m]
+            if len(rs) == len(scenes):
+                avg = {k: statistics.fmean(r[k] for r in rs) for k in ("psnr", "ssim", "lpips", "train_seconds", "checkpoint_mb")}
+                rows.append(
+                    f"| average | {m} | {avg['psnr']:.2f} | {avg['ssim']:.3f} | {avg['lpips']:.3f} | "
+                    f"{avg['train_seconds'] / 60:.1f} min | {avg['checkpoint_mb']:.1f} | |"
+                )
+    return "\n".join(rows)
+
+
+def main(argv: Optional[List[str]] = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "benchmark_scenes.yaml")
+    parser.add_argument("--scenes", nargs="*", help="scene names from the config (default: all)")
+    parser.add_argument("--baselines", nargs="*", default=[], help="nerfstudio methods to train too (tensorf, nerfacto)")
+    parser.add_argument("--preset", help="FrugalNeRF method for every scene (default: each scene's preset)")
+    parser.add_argument("--max-iterations", type=int, help="override every method's iteration budget")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "benchmark")
+    args = parser.parse_args(argv)
+
+    config = yaml.safe_load(args.config.read_text())
+    names = args.scenes or list(config["scenes"])
+    results = []
+    for name in names:
+        scene = config["scenes"][name]
+        data = (ROOT / scene["data"]).resolve()
+        if not data.is_dir():
+            print(f"benchmark: skipping {name}: {data} not found")
+            continue
+        budget = ["--max-num-iterations", str(args.max_iterations)] if args.max_iterations else []
+        runs = [(args.preset or scene["preset"], scene["parser"], budget)]
+        for baseline in args.baselines:
+            extra = list(config["baselines"][baseline]["args"]) + budget
+            runs.append((baseline, scene["baseline_parser"], extra))
+        for method, parser_args, extra in runs:
+            print(f"benchmark: {name}: training {method} ...", flush=True)
+            results.append(run_method(method, name, data, parser_args, extra, args.out))
+            r = results[-1]
+            print(f"  PSNR {r['psnr']:.2f}  SSIM {r['ssim']:.3f}  LPIPS {r['lpips']:.3f}  {r['train_seconds'] / 60:.1f} min")
+
+    table = markdown(results)
+    print()
+    print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "benchmark_scenes.json").write_text(json.dumps(results, indent=2))
+    (args.out / "benchmark_scenes.md").write_text(table + "\n")
+    print(f"\nwrote {args.out / 'benchmark_scenes.md'} and {args.out / 'benchmark_scenes.json'}")
+
+
+if __name__ == "__main__":
+    main()
