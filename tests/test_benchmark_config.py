@@ -1,0 +1,54 @@
+"""The scene benchmark's config refers to registered methods/parsers; offline LPIPS stands in for torchmetrics'."""
+
+import importlib.util
+from importlib.metadata import entry_points
+from pathlib import Path
+
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_script(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_scene_config_uses_registered_presets_and_parsers():
+    config = yaml.safe_load((ROOT / "configs" / "benchmark_scenes.yaml").read_text())
+    methods = {ep.name for ep in entry_points(group="nerfstudio.method_configs")}
+    parsers = {ep.name for ep in entry_points(group="nerfstudio.dataparser_configs")}
+    for name, scene in config["scenes"].items():
+        assert scene["preset"] in methods, name
+        assert scene["parser"][0] in parsers and scene["baseline_parser"][0] in parsers, name
+    assert set(config["baselines"]) >= {"tensorf", "nerfacto"}
+
+
+def test_markdown_table_has_a_row_per_run_and_averages():
+    bench = load_script("benchmark_scenes")
+    runs = [
+        {"scene": s, "method": m, "psnr": p, "ssim": 0.5, "lpips": 0.4, "train_seconds": 60.0, "checkpoint_mb": 10.0,
+         "peak_rss_mib": 1000.0}
+        for s, m, p in [("a", "frugal", 18.0), ("a", "tensorf", 16.0), ("b", "frugal", 20.0), ("b", "tensorf", 17.0)]
+    ]
+    table = bench.markdown(runs).splitlines()
+    assert len(table) == 2 + 4 + 2
+    assert table[-2].startswith("| average | frugal | 19.00 |") and table[-1].startswith("| average | tensorf | 16.50 |")
+
+
+def test_torchmetrics_lpips_is_replaced_by_the_offline_one():
+    from frugalnerf_ns.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.offline_tools import patch_torchmetrics_lpips
+    from tests.lpips_fixture import fixed_image_pair
+
+    patch_torchmetrics_lpips()
+    from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+    metric = LearnedPerceptualImagePatchSimilarity(normalize=True)  # would download AlexNet unpatched
+    a, b = fixed_image_pair()
+    assert torch.allclose(metric(a, b), OfflineLPIPS()(a, b).mean(), atol=1e-6)
+    unnormalized = LearnedPerceptualImagePatchSimilarity()
+    assert torch.allclose(unnormalized(a * 2 - 1, b * 2 - 1), metric(a, b), atol=1e-6)
