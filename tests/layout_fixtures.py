@@ -153,3 +153,25 @@ def closest_points(o1, d1, o2, d2):
     s = (b * e - c * d) / denom
     t = (a * e - b * d) / denom
     return o1 + s * d1, o2 + t * d2, s, t
+
+
+def write_colmap(root: Path, count: int = 10) -> List[Tuple[float, float]]:
+    """COLMAP binary model in sparse/0 (PINHOLE cameras, one 3D point) next to images/."""
+    from nerfstudio.data.utils import colmap_parsing_utils as cpu
+
+    cameras, images, pixels = {}, {}, []
+    for i, (K, w2c) in enumerate(opencv_cameras(count, forward_facing=False)):
+        cameras[i + 1] = cpu.Camera(id=i + 1, model="PINHOLE", width=WIDTH, height=HEIGHT,
+                                    params=np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
+        images[i + 1] = cpu.Image(id=i + 1, qvec=cpu.rotmat2qvec(w2c[:3, :3]), tvec=w2c[:3, 3], camera_id=i + 1,
+                                  name=f"img_{i:03d}.png", xys=np.zeros((0, 2)), point3D_ids=np.zeros(0, dtype=int))
+        pixels.append(project(K, w2c))
+    points = {1: cpu.Point3D(id=1, xyz=POINT, rgb=np.array([255, 0, 0]), error=0.1,
+                             image_ids=np.array([1, 2]), point2D_idxs=np.array([0, 0]))}
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    cpu.write_cameras_binary(cameras, sparse / "cameras.bin")
+    cpu.write_images_binary(images, sparse / "images.bin")
+    cpu.write_points3D_binary(points, sparse / "points3D.bin")
+    write_images(root / "images", [f"img_{i:03d}.png" for i in range(count)])
+    return pixels

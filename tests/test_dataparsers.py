@@ -6,6 +6,7 @@ OpenCV/OpenGL mistakes make them miss.
 """
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +16,10 @@ from frugalnerf_ns.data import DataError
 from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig, detect_layout
 from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
 from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
-from frugalnerf_ns.dataparsers.nerfstudio_format import FewShotNerfstudioDataParserConfig
+from frugalnerf_ns.dataparsers.nerfstudio_format import (
+    FewShotColmapDataParserConfig,
+    FewShotNerfstudioDataParserConfig,
+)
 from frugalnerf_ns.dataparsers.realestate import RealEstateDataParserConfig
 from tests import layout_fixtures as fx
 
@@ -24,6 +28,8 @@ LAYOUTS = {
                                                             test_views=(0, 2, 4, 6, 8))),
     "dtu": (fx.write_dtu, lambda d: DTUDataParserConfig(data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "realestate": (fx.write_realestate, lambda d: RealEstateDataParserConfig(data=d, num_train_views=4)),
+    "colmap": (fx.write_colmap, lambda d: FewShotColmapDataParserConfig(
+        data=d, colmap_path=Path("sparse/0"), train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "nerfstudio": (fx.write_nerfstudio, lambda d: FewShotNerfstudioDataParserConfig(
         data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
 }

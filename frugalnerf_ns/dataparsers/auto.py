@@ -74,6 +74,9 @@ def layout_config(config: AutoDataParserConfig) -> Tuple[str, DataParserConfig]:
             value = getattr(config, f.name)
             if value is not None:
                 setattr(target, f.name, value)
+    if isinstance(target, FewShotColmapDataParserConfig):
+        # nerfstudio looks in colmap/sparse/0 (ns-process-data); a plain COLMAP project has sparse/0.
+        target.colmap_path = next(p for p in (Path("colmap/sparse/0"), Path("sparse/0")) if (Path(config.data) / p).is_dir())
     return name, target
 
 
