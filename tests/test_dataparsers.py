@@ -197,3 +197,16 @@ def test_nerfstudio_few_shot_conflicts_with_its_own_split_lists(tmp_path, proced
     # Without few-shot options the file's own split is used.
     outputs = FewShotNerfstudioDataParserConfig(data=procedural_scene).setup().get_dataparser_outputs("train")
     assert len(outputs.image_filenames) == 3
+
+
+def test_datamanager_puts_eval_masks_in_test_batches_only(tmp_path):
+    from frugalnerf_ns.datamanager import FrugalDataManagerConfig, FrugalDataset
+
+    fx.write_dtu(tmp_path / "dtu")
+    config = FrugalDataManagerConfig(dataparser=DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)))
+    manager = config.setup(device="cpu", test_mode="test")
+    assert isinstance(manager.eval_dataset, FrugalDataset)
+    mask = manager.eval_dataset[0]["eval_mask"]
+    assert mask.shape == (fx.HEIGHT, fx.WIDTH, 1) and mask.dtype == torch.bool
+    assert int(mask.sum()) == 15 * 20  # the fixture's mask rectangle
+    assert "eval_mask" not in manager.train_dataset[0]
