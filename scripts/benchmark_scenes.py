@@ -95,6 +95,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     parser.add_argument("--scenes", nargs="*", help="scene names from the config (default: all)")
     parser.add_argument("--baselines", nargs="*", default=[], help="nerfstudio methods to train too (tensorf, nerfacto)")
     parser.add_argument("--preset", help="FrugalNeRF method for every scene (default: each scene's preset)")
+    parser.add_argument("--only-baselines", action="store_true", help="skip FrugalNeRF (e.g. to add baselines later)")
     parser.add_argument("--max-iterations", type=int, help="override every method's iteration budget")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "benchmark")
     args = parser.parse_args(argv)
@@ -109,7 +110,7 @@ def main(argv: Optional[List[str]] = None) -> None:
             print(f"benchmark: skipping {name}: {data} not found")
             continue
         budget = ["--max-num-iterations", str(args.max_iterations)] if args.max_iterations else []
-        runs = [(args.preset or scene["preset"], scene["parser"], budget)]
+        runs = [] if args.only_baselines else [(args.preset or scene["preset"], scene["parser"], budget)]
         for baseline in args.baselines:
             extra = list(config["baselines"][baseline]["args"]) + budget
             runs.append((baseline, scene["baseline_parser"], extra))
@@ -117,6 +118,8 @@ def main(argv: Optional[List[str]] = None) -> None:
             print(f"benchmark: {name}: training {method} ...", flush=True)
             results.append(run_method(method, name, data, parser_args, extra, args.out))
             r = results[-1]
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / "benchmark_scenes.json").write_text(json.dumps(results, indent=2))  # partial results survive
             print(f"  PSNR {r['psnr']:.2f}  SSIM {r['ssim']:.3f}  LPIPS {r['lpips']:.3f}  {r['train_seconds'] / 60:.1f} min")
 
     table = markdown(results)
