@@ -22,7 +22,7 @@ from frugalnerf_ns import losses
 from frugalnerf_ns.color_mlp import MLPImplementation
 from frugalnerf_ns.field import DensityActivation, FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
-from frugalnerf_ns.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
+from frugalnerf_ns.raymarch import RaySegments, composite_rgb, composite_weights, intersect_aabb, march_steps
 
 Background = Literal["random_white", "white", "black"]
 
@@ -191,9 +191,9 @@ class FrugalNeRFModel(Model):
         directions: Float[Tensor, "rays 3"],
         scale: int,
         background: Float[Tensor, "3"],
+        segments: RaySegments,
     ) -> ScaleRender:
         """March one scale: fixed-step samples in the box, density where occupied, colour where it matters."""
-        segments = intersect_aabb(origins, directions, self.field.aabb, self.config.near_plane)
         step = self.field.sample_step(scale, self.config.step_ratio)
         diagonal = float((self.field.aabb[1] - self.field.aabb[0]).norm())
         limit = max(1, self.config.max_samples_per_ray // self.field.stride(scale))
@@ -224,8 +224,10 @@ class FrugalNeRFModel(Model):
         background = self._background(origins.device)
         # The background travels with the outputs so the loss composites the target on the same one.
         outputs: Dict[str, Tensor] = {"background": background} if self.training else {}
+        # All scales march the same box: intersect once.
+        segments = intersect_aabb(origins, directions, self.field.aabb, self.config.near_plane)
         for scale in range(self.field.num_scales):
-            render = self.render_scale(origins, directions, scale, background)
+            render = self.render_scale(origins, directions, scale, background, segments)
             suffix = scale_suffix(scale)
             outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)
             depth = render.depth
