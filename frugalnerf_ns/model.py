@@ -6,8 +6,9 @@ Geometric adaptation (Eq. 2-10), novel-view rays, sparse depth and monocular dep
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, NamedTuple, Optional, Tuple, Type
+from typing import Dict, Iterator, List, Literal, NamedTuple, Optional, Tuple, Type
 
 import torch
 from jaxtyping import Float
@@ -146,6 +147,17 @@ class FrugalNeRFModel(Model):
         self.psnr = PeakSignalNoiseRatio(data_range=1.0)
         self.ssim = structural_similarity_index_measure
         self.lpips = OfflineLPIPS()
+        # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
+        self.num_rendered_scales: Optional[int] = None
+
+    @contextlib.contextmanager
+    def full_scale_only(self) -> Iterator[None]:
+        """Within the block, inference renders only the full scale (the only one test metrics read)."""
+        previous, self.num_rendered_scales = self.num_rendered_scales, 1
+        try:
+            yield
+        finally:
+            self.num_rendered_scales = previous
 
     # ---- optimisation -----------------------------------------------------------------------------------
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
@@ -226,7 +238,10 @@ class FrugalNeRFModel(Model):
         outputs: Dict[str, Tensor] = {"background": background} if self.training else {}
         # All scales march the same box: intersect once.
         segments = intersect_aabb(origins, directions, self.field.aabb, self.config.near_plane)
-        for scale in range(self.field.num_scales):
+        num_scales = self.field.num_scales
+        if not self.training and self.num_rendered_scales is not None:
+            num_scales = min(num_scales, self.num_rendered_scales)
+        for scale in range(num_scales):
             render = self.render_scale(origins, directions, scale, background, segments)
             suffix = scale_suffix(scale)
             outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)

@@ -1,0 +1,45 @@
+"""The shared scorer of scripts/benchmark_scenes.py: masked rendering is exact, full scale only is the same."""
+
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+
+from frugalnerf_ns.offline_tools import render_test_rgb
+from tests.test_model import tiny_model
+
+
+def small_camera(height=12, width=16):
+    # Looks down -z from z = 3 at the unit box (nerfstudio cameras are OpenGL-style).
+    c2w = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3]])[None]
+    return Cameras(
+        camera_to_worlds=c2w, fx=20.0, fy=20.0, cx=width / 2, cy=height / 2, width=width, height=height,
+        camera_type=CameraType.PERSPECTIVE,
+    )
+
+
+def test_masked_render_equals_full_render_inside_the_mask_and_black_outside():
+    model = tiny_model()
+    model.eval()
+    camera = small_camera()
+    full = render_test_rgb(model, camera, None)
+    assert full.shape == (12, 16, 3)
+    mask = torch.zeros(12, 16, 1, dtype=torch.bool)
+    mask[3:9, 4:11] = True
+    masked = render_test_rgb(model, camera, mask)
+    inside = mask[..., 0]
+    assert torch.allclose(masked[inside], full[inside], atol=1e-5)
+    assert (masked[~inside] == 0).all()
+    # An empty mask renders nothing and returns black.
+    assert (render_test_rgb(model, camera, torch.zeros_like(mask)) == 0).all()
+
+
+def test_full_scale_only_renders_the_same_rgb_without_lower_scales():
+    model = tiny_model()
+    model.eval()
+    bundle = small_camera().generate_rays(camera_indices=0)
+    with torch.no_grad():
+        everything = model.get_outputs_for_camera_ray_bundle(bundle)
+        with model.full_scale_only():
+            only_full = model.get_outputs_for_camera_ray_bundle(bundle)
+    assert "rgb_scale1" in everything and "rgb_scale1" not in only_full
+    assert torch.allclose(only_full["rgb"], everything["rgb"], atol=1e-6)
+    assert model.num_rendered_scales is None  # restored after the block
