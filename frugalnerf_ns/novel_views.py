@@ -1,0 +1,88 @@
+"""Where novel-view rays come from and which training view each view is compared with (paper Sec. 3.4).
+
+Pure torch functions on nerfstudio camera-to-world matrices ([n, 3, 4], OpenGL axes: the camera looks down
+-z, y up).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+from frugalnerf_ns.camera_conventions import average_pose
+
+
+def spiral_poses(
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    focus_depth: float,
+    num_poses: int,
+    rotations: float,
+    radius_scale: float,
+    zrate: float,
+) -> Float[Tensor, "num_poses 3 4"]:
+    """TensoRF's spiral around the training cameras (supp. "Novel pose sampling"): positions circle the
+    average camera with radii the 90th percentile of the cameras' offsets from it (times ``radius_scale``)
+    per axis, moving in depth at ``zrate`` times the angular speed, and every pose looks at the point
+    ``focus_depth`` in front of the average camera, with the average camera's up."""
+    if num_poses < 1:
+        raise ValueError(f"num_poses must be >= 1, got {num_poses}")
+    poses = camera_to_worlds.detach().cpu().double()
+    mean = torch.from_numpy(average_pose(poses.numpy()))  # [right, up, back, centre]
+    rotation, centre = mean[:, :3], mean[:, 3]
+    offsets = (poses[:, :, 3] - centre) @ rotation  # each camera's centre in the average camera's frame
+    radii = torch.quantile(offsets.abs(), 0.9, dim=0) * radius_scale
+    lookat = centre - rotation[:, 2] * focus_depth
+    angles = torch.linspace(0.0, 2.0 * math.pi * rotations, num_poses + 1, dtype=torch.float64)[:-1]
+    local = torch.stack([angles.cos(), -angles.sin(), -(angles * zrate).sin()], dim=-1) * radii
+    positions = centre + local @ rotation.T
+    back = torch.nn.functional.normalize(positions - lookat, dim=-1)
+    right = torch.nn.functional.normalize(torch.linalg.cross(rotation[:, 1].expand_as(back), back), dim=-1)
+    up = torch.linalg.cross(back, right)
+    spiral = torch.stack([right, up, back, positions], dim=-1)
+    return spiral.to(camera_to_worlds)
+
+
+def spiral_focus_depth(
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    near_far: Optional[tuple] = None,
+    scene_center: Optional[Float[Tensor, "3"]] = None,
+) -> float:
+    """Depth in front of the average camera that the spiral looks at.
+
+    Forward-facing scenes with near/far bounds use TensoRF's (and LLFF's) choice, a disparity-weighted mix
+    of 0.9 x near and 5 x far; object-centric scenes look at the scene centre.
+    """
+    mean = average_pose(camera_to_worlds.detach().cpu().double().numpy())
+    if near_far is not None:
+        close, far = 0.9 * float(near_far[0]), 5.0 * float(near_far[1])
+        return 1.0 / (0.25 / close + 0.75 / far)
+    center = np.zeros(3) if scene_center is None else scene_center.detach().cpu().double().numpy()
+    depth = float(np.dot(mean[:, 3] - center, mean[:, 2]))  # along the viewing axis (-back)
+    if depth <= 0:
+        raise ValueError("the scene centre is behind the average training camera; cannot aim a spiral at it")
+    return depth
+
+
+def nearest_training_views(
+    query_centers: Float[Tensor, "queries 3"],
+    train_centers: Float[Tensor, "views 3"],
+    query_train_index: Optional[Int[Tensor, "queries"]] = None,
+) -> Int[Tensor, "queries"]:
+    """Index of the training camera whose centre is closest to each query camera's centre.
+
+    ``query_train_index`` gives, for queries that are training views themselves, their own index (-1 for
+    novel views): a training view never picks itself. Where no other training view exists (a single
+    training view) the answer is -1.
+    """
+    distance = torch.cdist(query_centers.double(), train_centers.double())
+    if query_train_index is not None:
+        own = query_train_index >= 0
+        rows = own.nonzero(as_tuple=True)[0]
+        distance[rows, query_train_index[own]] = float("inf")
+    best = distance.argmin(dim=-1)
+    return torch.where(torch.isfinite(distance.min(dim=-1).values), best, torch.full_like(best, -1))
