@@ -6,7 +6,11 @@ SSIM / LPIPS / training time / checkpoint size / peak memory, side by side.
 
 Usage:
   python scripts/benchmark_scenes.py [--config configs/benchmark_scenes.yaml] [--scenes fern dtu_scan65]
-         [--baselines tensorf nerfacto] [--preset frugalnerf-cpu] [--max-iterations N] [--out outputs/benchmark]
+         [--baselines tensorf nerfacto] [--variants no-geo no-novel single-scale] [--preset frugalnerf-cpu]
+         [--max-iterations N] [--out outputs/benchmark]
+
+``--variants`` adds FrugalNeRF runs with the named option sets of the config's ``variants`` section (the
+paper's ablations), each labelled ``<preset>[<variant>]`` in the table.
 """
 
 from __future__ import annotations
@@ -34,14 +38,18 @@ def device_args() -> List[str]:
     return [] if torch.cuda.is_available() else ["--machine.device-type", "cpu"]
 
 
-def run_method(method: str, scene: str, data: Path, parser_args: List[str], extra: List[str], out: Path) -> Dict[str, Any]:
+def run_method(
+    method: str, scene: str, data: Path, parser_args: List[str], extra: List[str], out: Path, label: Optional[str] = None
+) -> Dict[str, Any]:
+    """Train ``method`` (shown as ``label``) on one scene, score its test views, return one table row."""
+    label = label or method
     timestamp = "bench"
-    run_dir = out / "runs" / scene / method / timestamp
+    run_dir = out / "runs" / scene / label / timestamp
     train = [
         "/usr/bin/time", "-f", "PEAK_RSS_KB %M",
         sys.executable, "-m", "frugalnerf_ns.offline_tools", "train", method, "--data", str(data),
-        "--output-dir", str(out / "runs"), "--experiment-name", scene, "--timestamp", timestamp, *QUIET, *device_args(), *extra,
-        *parser_args,
+        "--output-dir", str(out / "runs"), "--experiment-name", scene, "--method-name", label, "--timestamp", timestamp,
+        *QUIET, *device_args(), *extra, *parser_args,
     ]
     start = time.time()
     proc = subprocess.run(train, capture_output=True, text=True)
@@ -59,7 +67,7 @@ def run_method(method: str, scene: str, data: Path, parser_args: List[str], extr
     ckpt = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))[-1]
     return {
         "scene": scene,
-        "method": method,
+        "method": label,
         **json.loads(lines[-1][len("RESULT "):]),
         "train_seconds": seconds,
         "checkpoint_mb": ckpt.stat().st_size / 1e6,
@@ -94,6 +102,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "benchmark_scenes.yaml")
     parser.add_argument("--scenes", nargs="*", help="scene names from the config (default: all)")
     parser.add_argument("--baselines", nargs="*", default=[], help="nerfstudio methods to train too (tensorf, nerfacto)")
+    parser.add_argument("--variants", nargs="*", default=[], help="FrugalNeRF ablations from the config's variants")
     parser.add_argument("--preset", help="FrugalNeRF method for every scene (default: each scene's preset)")
     parser.add_argument("--only-baselines", action="store_true", help="skip FrugalNeRF (e.g. to add baselines later)")
     parser.add_argument("--max-iterations", type=int, help="override every method's iteration budget")
@@ -110,13 +119,16 @@ def main(argv: Optional[List[str]] = None) -> None:
             print(f"benchmark: skipping {name}: {data} not found")
             continue
         budget = ["--max-num-iterations", str(args.max_iterations)] if args.max_iterations else []
-        runs = [] if args.only_baselines else [(args.preset or scene["preset"], scene["parser"], budget)]
+        preset = args.preset or scene["preset"]
+        runs = [] if args.only_baselines else [(preset, preset, scene["parser"], budget)]
+        for variant in args.variants:
+            runs.append((preset, f"{preset}[{variant}]", scene["parser"], list(config["variants"][variant]) + budget))
         for baseline in args.baselines:
             extra = list(config["baselines"][baseline]["args"]) + budget
-            runs.append((baseline, scene["baseline_parser"], extra))
-        for method, parser_args, extra in runs:
-            print(f"benchmark: {name}: training {method} ...", flush=True)
-            results.append(run_method(method, name, data, parser_args, extra, args.out))
+            runs.append((baseline, baseline, scene["baseline_parser"], extra))
+        for method, label, parser_args, extra in runs:
+            print(f"benchmark: {name}: training {label} ...", flush=True)
+            results.append(run_method(method, name, data, parser_args, extra, args.out, label))
             r = results[-1]
             args.out.mkdir(parents=True, exist_ok=True)
             (args.out / "benchmark_scenes.json").write_text(json.dumps(results, indent=2))  # partial results survive

@@ -52,3 +52,19 @@ def test_torchmetrics_lpips_is_replaced_by_the_offline_one():
     assert torch.allclose(metric(a, b), OfflineLPIPS()(a, b).mean(), atol=1e-6)
     unnormalized = LearnedPerceptualImagePatchSimilarity()
     assert torch.allclose(unnormalized(a * 2 - 1, b * 2 - 1), metric(a, b), atol=1e-6)
+
+
+def test_ablation_variants_name_real_options_of_the_presets():
+    from frugalnerf_ns.presets import build_trainer_config
+
+    config = yaml.safe_load((ROOT / "configs" / "benchmark_scenes.yaml").read_text())
+    assert set(config["variants"]) >= {"no-geo", "no-novel", "single-scale"}
+    trainer = build_trainer_config("frugalnerf-cpu")
+    for name, args in config["variants"].items():
+        options = args[0::2]
+        for option in options:
+            target = trainer
+            *parents, leaf = option.lstrip("-").replace("-", "_").split(".")
+            for part in parents:
+                target = getattr(target, part)
+            assert hasattr(target, leaf), (name, option)
