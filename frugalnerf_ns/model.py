@@ -7,6 +7,7 @@ Geometric adaptation (Eq. 2-10), novel-view rays, sparse depth and monocular dep
 from __future__ import annotations
 
 import contextlib
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Dict, Iterator, List, Literal, NamedTuple, Optional, Tuple, Type
 
@@ -16,13 +17,16 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
+from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor, nn
 from torch.nn import Parameter
 
 from frugalnerf_ns import losses
 from frugalnerf_ns.color_mlp import MLPImplementation
+from frugalnerf_ns.geometric_adaptation import AdaptationResult, ScaleFractionHistory, cross_scale_geometric_adaptation, scale_statistics
 from frugalnerf_ns.field import DensityActivation, FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
+from frugalnerf_ns.reprojection import ErrorKind, depth_smoothness_loss
 from frugalnerf_ns.raymarch import RaySegments, composite_rgb, composite_weights, intersect_aabb, march_steps
 
 Background = Literal["random_white", "white", "black"]
@@ -100,6 +104,16 @@ class FrugalNeRFModelConfig(ModelConfig):
     """L1 sparsity on the density components."""
     distortion_weight: float = 5e-4
     """Mip-NeRF 360 distortion loss."""
+    geo_weight: float = 0.01
+    """lambda_geo of the cross-scale geometric adaptation loss (Eq. 10-11); 0 turns it off."""
+    reprojection_error: ErrorKind = "rmse"
+    """How a patch's reprojection error (Eq. 2) aggregates per-channel squared colour differences over the
+    patch: rmse (reference code) or mse. Out-of-image / behind-camera pixels count as error 1."""
+    reprojection_threshold: float = 0.5
+    """Rays whose least reprojection error over the scales exceeds this are left out of L_geo (paper: 0.5;
+    in colour units for rmse, i.e. the warped patch is off by half the colour range)."""
+    depth_smoothness_weight: float = 5e-3
+    """Depth smoothness on novel-view 2x2 patches (LLFF 5e-3, DTU 50, RealEstate 0); lower scales / 16, 256."""
 
 
 class ScaleRender(NamedTuple):
@@ -149,6 +163,7 @@ class FrugalNeRFModel(Model):
         self.lpips = OfflineLPIPS()
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
+        self.scale_history = ScaleFractionHistory()
 
     @contextlib.contextmanager
     def full_scale_only(self) -> Iterator[None]:
@@ -182,11 +197,27 @@ class FrugalNeRFModel(Model):
                 self.field.upsample(resolution_for_voxels(voxels, box))
                 _restart_grid_optimizer(training_callback_attributes)
 
+        def record_scale_fractions(step: int) -> None:
+            stats = getattr(self, "_last_scale_stats", None)
+            if stats is None:
+                return
+            self.scale_history.record(step, stats)
+            trainer = training_callback_attributes.trainer
+            if trainer is None:
+                return
+            last = getattr(trainer, "_start_step", 0) + trainer.config.max_num_iterations - 1
+            # Written at every checkpoint too, so an interrupted run still has its plot.
+            if step == last or step % trainer.config.steps_per_save == 0:
+                path = self.scale_history.write(Path(trainer.base_dir))
+                if step == last:
+                    CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
+
         return [
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=self.config.upsample_iters),
             TrainingCallback(
                 [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=self.config.alpha_mask_iters
             ),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record_scale_fractions),
         ]
 
     # ---- rendering --------------------------------------------------------------------------------------
@@ -254,6 +285,11 @@ class FrugalNeRFModel(Model):
             if self.training:
                 outputs[f"weights{suffix}"] = render.weights
                 outputs[f"t{suffix}"] = render.t
+                # The depth the field renders in (NDC t in NDC scenes): what L_geo and smoothness compare.
+                outputs[f"render_depth{suffix}"] = render.depth
+        if self.training:
+            outputs["ray_origins"] = ray_bundle.origins.reshape(-1, 3)
+            outputs["ray_directions"] = ray_bundle.directions.reshape(-1, 3)
         return outputs
 
     # ---- losses and metrics -----------------------------------------------------------------------------
@@ -270,16 +306,22 @@ class FrugalNeRFModel(Model):
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
         target = self._target_rgb(batch["image"].to(self.device), outputs["background"])
+        num_train = target.shape[0]  # training rays come first; novel-view rays (if any) follow
         metrics = {}
         for scale in range(self.field.num_scales):
             suffix = scale_suffix(scale)
-            metrics[f"psnr{suffix}"] = self.psnr(outputs[f"rgb{suffix}"], target)
+            metrics[f"psnr{suffix}"] = self.psnr(outputs[f"rgb{suffix}"][:num_train], target)
+        adaptation = self._geometric_adaptation(outputs, batch)
+        if adaptation is not None:
+            stats = scale_statistics(adaptation.chosen_scale, self.field.num_scales)
+            self._last_scale_stats = stats
+            metrics.update({name: torch.tensor(value) for name, value in stats.items()})
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
-        cfg = self.config
         target = self._target_rgb(batch["image"].to(self.device), outputs["background"])
-        predictions = [outputs[f"rgb{scale_suffix(s)}"] for s in range(self.field.num_scales)]
+        num_train = target.shape[0]
+        predictions = [outputs[f"rgb{scale_suffix(s)}"][:num_train] for s in range(self.field.num_scales)]
         loss_dict = {"rgb_loss": losses.multiscale_color_loss(predictions, target, self._scale_weights())}
         loss_dict.update(self._regularizers(outputs))
         loss_dict.update(self._extra_losses(outputs, batch))
@@ -316,8 +358,51 @@ class FrugalNeRFModel(Model):
         return terms
 
     def _extra_losses(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
-        """Seam for the geometric-adaptation and depth terms of later issues."""
-        return {}
+        """Geometric adaptation (Eq. 10) and depth smoothness on novel-view patches."""
+        cfg = self.config
+        terms: Dict[str, Tensor] = {}
+        adaptation = self._geometric_adaptation(outputs, batch)
+        if adaptation is not None:
+            terms["geo_loss"] = cfg.geo_weight * (adaptation.loss_train + adaptation.loss_novel)
+        num_train = batch.get("num_train_rays")
+        num_novel = outputs["rgb"].shape[0] - num_train if num_train is not None else 0
+        if cfg.depth_smoothness_weight > 0 and num_novel >= 4:
+            smooth = 0.0
+            for scale in range(self.field.num_scales):
+                depth = outputs[f"render_depth{scale_suffix(scale)}"][num_train:, 0]
+                patches = depth[: num_novel // 4 * 4].reshape(-1, 2, 2)
+                smooth = smooth + depth_smoothness_loss(patches) / self.field.stride(scale) ** 2
+            terms["depth_smoothness"] = cfg.depth_smoothness_weight * smooth
+        return terms
+
+    def _geometric_adaptation(self, outputs: Dict[str, Tensor], batch: Dict) -> Optional[AdaptationResult]:
+        """Eq. 2-9 on the batch from FrugalDataManager, computed once per step (metrics and loss share it);
+        None when the batch carries no warping context (other datamanagers, eval) or lambda_geo is 0."""
+        if self.config.geo_weight <= 0 or "num_train_rays" not in batch or "ray_origins" not in outputs:
+            return None
+        if "geo_adaptation" in outputs:
+            return outputs["geo_adaptation"]  # type: ignore[return-value]
+        num_train = batch["num_train_rays"]
+        target = self._target_rgb(batch["image"].to(self.device), torch.ones(3, device=self.device))
+        source = torch.cat([target, outputs["rgb"][num_train:].detach()])  # Eq. 6: novel rays use the render
+        scales = range(self.field.num_scales)
+        result = cross_scale_geometric_adaptation(
+            outputs["ray_origins"],
+            outputs["ray_directions"],
+            torch.stack([outputs[f"depth{scale_suffix(s)}"][:, 0] for s in scales]),
+            torch.stack([outputs[f"render_depth{scale_suffix(s)}"][:, 0] for s in scales]),
+            source,
+            batch["nearest_view"],
+            num_train,
+            batch["patch_size"],
+            batch["warp_images"],
+            batch["warp_camera_to_worlds"],
+            batch["warp_intrinsics"],
+            self.config.reprojection_threshold,
+            self.config.reprojection_error,
+        )
+        outputs["geo_adaptation"] = result  # type: ignore[assignment]
+        return result
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]

@@ -47,6 +47,19 @@ def spiral_poses(
     return spiral.to(camera_to_worlds)
 
 
+def optical_axes_focus(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Optional[Float[Tensor, "3"]]:
+    """Least-squares point closest to every camera's optical axis (where the cameras look together), or
+    None when the axes are (nearly) parallel and the point is ill-defined."""
+    poses = camera_to_worlds.detach().cpu().double()
+    origins, axes = poses[:, :, 3], -poses[:, :, 2]
+    projector = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]  # I - d d^T per camera
+    system = projector.sum(dim=0)
+    # Two axes 2 degrees apart give a smallest eigenvalue ~ 1 - cos(2 deg) = 6e-4.
+    if float(torch.linalg.eigvalsh(system)[0]) < 5e-4:
+        return None
+    return torch.linalg.solve(system, (projector @ origins[:, :, None]).sum(dim=0))[:, 0]
+
+
 def spiral_focus_depth(
     camera_to_worlds: Float[Tensor, "views 3 4"],
     near_far: Optional[tuple] = None,
@@ -55,17 +68,23 @@ def spiral_focus_depth(
     """Depth in front of the average camera that the spiral looks at.
 
     Forward-facing scenes with near/far bounds use TensoRF's (and LLFF's) choice, a disparity-weighted mix
-    of 0.9 x near and 5 x far; object-centric scenes look at the scene centre.
+    of 0.9 x near and 5 x far. Otherwise the spiral looks where the training cameras' optical axes meet
+    (object-centric captures) or, failing that, at the scene centre.
     """
-    mean = average_pose(camera_to_worlds.detach().cpu().double().numpy())
     if near_far is not None:
         close, far = 0.9 * float(near_far[0]), 5.0 * float(near_far[1])
         return 1.0 / (0.25 / close + 0.75 / far)
-    center = np.zeros(3) if scene_center is None else scene_center.detach().cpu().double().numpy()
-    depth = float(np.dot(mean[:, 3] - center, mean[:, 2]))  # along the viewing axis (-back)
-    if depth <= 0:
-        raise ValueError("the scene centre is behind the average training camera; cannot aim a spiral at it")
-    return depth
+    mean = torch.from_numpy(average_pose(camera_to_worlds.detach().cpu().double().numpy()))
+    candidates = [optical_axes_focus(camera_to_worlds), None if scene_center is None else scene_center.detach().cpu().double()]
+    for point in candidates:
+        if point is not None:
+            depth = float(torch.dot(mean[:, 3] - point, mean[:, 2]))  # along the viewing axis (-back)
+            if depth > 0:
+                return depth
+    raise ValueError(
+        "cannot aim the novel-view spiral: the training cameras' axes do not meet in front of them and the scene "
+        "centre is behind the average camera"
+    )
 
 
 def nearest_training_views(

@@ -1,5 +1,6 @@
 """ns-train frugalnerf-tiny on the procedural scene, ns-eval, then resume from the checkpoint."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -36,6 +37,19 @@ def test_checkpoint_holds_the_grown_grid(trained_run):
     density = [v for k, v in state["pipeline"].items() if "density_grid.planes.0" in k][0]
     # The tiny preset starts at 30^3 voxels and upsamples to 48^3 (then shrinks the box, keeping the count).
     assert density.shape[-1] * density.shape[-2] > 30 * 30
+
+
+def test_training_logs_and_plots_the_scale_fractions(trained_run):
+    _, run_dir = trained_run
+    png = run_dir / "geometric_adaptation.png"
+    assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
+    history = json.loads((run_dir / "geometric_adaptation.json").read_text())
+    # One row per training step of the tiny preset (400), each a distribution over scales + left out.
+    assert len(history["steps"]) == 400 and history["steps"][-1] == 399
+    for row in history["stats"][::50]:
+        assert sum(row.values()) == pytest.approx(1.0)
+    # Geometric adaptation actually happens: most rays find a scale within the threshold by the end.
+    assert history["stats"][-1]["geo_left_out_fraction"] < 0.5
 
 
 def test_resume_with_load_dir_continues_training(trained_run, procedural_scene, tmp_path):

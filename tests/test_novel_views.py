@@ -49,10 +49,23 @@ def test_focus_depth_for_forward_facing_and_object_scenes():
     near, far = 1.0, 10.0
     expected = 1.0 / (0.25 / (0.9 * near) + 0.75 / (5 * far))
     assert spiral_focus_depth(cameras, near_far=(near, far)) == pytest.approx(expected)
+    # Parallel axes: the scene centre decides.
     shifted = looking_down_minus_z([[-0.5, 0.0, 3.0], [0.5, 0.0, 3.0]])
     assert spiral_focus_depth(shifted, scene_center=torch.zeros(3)) == pytest.approx(3.0)
-    with pytest.raises(ValueError, match="behind"):
+    with pytest.raises(ValueError, match="spiral"):
         spiral_focus_depth(looking_down_minus_z([[0.0, 0.0, -3.0]]), scene_center=torch.zeros(3))
+    # Cameras on a circle looking at a point 2 units away: their axes meet there, whatever the scene centre.
+    target = torch.tensor([0.3, 0.0, -2.0])
+    poses = []
+    for angle in (-0.4, 0.0, 0.4):
+        center = target + 2.0 * torch.tensor([math.sin(angle), 0.0, math.cos(angle)])
+        back = torch.nn.functional.normalize(center - target, dim=0)
+        right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0]), back), dim=0)
+        poses.append(torch.stack([right, torch.linalg.cross(back, right), back, center], dim=1))
+    poses = torch.stack(poses)
+    mean_center = poses[:, :, 3].mean(dim=0)
+    expected = float((mean_center - target).norm())
+    assert spiral_focus_depth(poses, scene_center=torch.tensor([0.0, 0.0, 50.0])) == pytest.approx(expected, rel=1e-4)
 
 
 def test_nearest_training_view_never_picks_itself():

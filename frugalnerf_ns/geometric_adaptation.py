@@ -1,0 +1,150 @@
+"""Cross-scale geometric adaptation on one batch (paper Eq. 2-10), and its per-step statistics.
+
+The datamanager lays the batch out as training rays in k x k patches followed by novel-view rays; this
+module warps every ray at every scale into its nearest training view, picks each ray's pseudo depth and
+returns L_geo(r_train) and L_geo(r_novel). The geometry itself is in ``reprojection.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Dict, List, NamedTuple
+
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+from frugalnerf_ns.reprojection import (
+    ErrorKind,
+    Warp,
+    geometric_adaptation_loss,
+    patch_reprojection_error,
+    select_pseudo_depth,
+    warp_to_views,
+)
+
+
+class AdaptationResult(NamedTuple):
+    loss_train: Float[Tensor, ""]
+    """Eq. 5: L_geo on training rays."""
+    loss_novel: Float[Tensor, ""]
+    """Eq. 9: L_geo on novel-view rays (0 without novel rays)."""
+    chosen_scale: Int[Tensor, "rays"]
+    """Scale whose depth became the pseudo ground truth, -1 where the ray was left out (error above the
+    threshold, or no other training view to warp into)."""
+    errors: Float[Tensor, "scales rays"]
+    """Reprojection error of every ray at every scale (train rays: their patch's error)."""
+
+
+def cross_scale_geometric_adaptation(
+    origins: Float[Tensor, "rays 3"],
+    directions: Float[Tensor, "rays 3"],
+    metric_depths: Float[Tensor, "scales rays"],
+    loss_depths: Float[Tensor, "scales rays"],
+    source_colors: Float[Tensor, "rays 3"],
+    nearest_view: Int[Tensor, "rays"],
+    num_train_rays: int,
+    patch_size: int,
+    images: Float[Tensor, "views height width 3"],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    threshold: float,
+    kind: ErrorKind = "rmse",
+) -> AdaptationResult:
+    """Eq. 2-10 on a batch of ``num_train_rays`` patch-major training rays followed by novel-view rays.
+
+    ``metric_depths`` place the points for warping (metric distance along the unit world ray);
+    ``loss_depths`` are what L_geo compares (the depth the model renders in: NDC depth in NDC scenes, so
+    lambda_geo means the same as in the paper's TensoRF-based code). ``source_colors`` are the input colours
+    of the training pixels and, for novel rays (Eq. 6), the rendered colour, which must come detached.
+    Training rays share their patch's error (supp. Sec. B); novel rays use single pixels.
+    """
+    num_scales, num_rays = metric_depths.shape
+    usable = nearest_view >= 0
+    target = nearest_view.clamp_min(0)
+    warp = warp_to_views(
+        origins.repeat(num_scales, 1),
+        directions.repeat(num_scales, 1),
+        metric_depths.detach().reshape(-1),  # the selection is made without gradient (Eq. 3-4)
+        target.repeat(num_scales),
+        images,
+        camera_to_worlds,
+        intrinsics,
+    )
+    colors = warp.colors.reshape(num_scales, num_rays, 3)
+    valid = warp.valid.reshape(num_scales, num_rays)
+    pixels = patch_size * patch_size
+    num_patches = num_train_rays // pixels
+    train_errors = patch_reprojection_error(
+        source_colors[:num_train_rays].reshape(1, num_patches, pixels, 3),
+        Warp(
+            colors[:, :num_train_rays].reshape(num_scales, num_patches, pixels, 3),
+            valid[:, :num_train_rays].reshape(num_scales, num_patches, pixels),
+        ),
+        kind,
+    ).repeat_interleave(pixels, dim=1)
+    novel_errors = patch_reprojection_error(
+        source_colors[num_train_rays:, None, :][None],
+        Warp(colors[:, num_train_rays:, None], valid[:, num_train_rays:, None]),
+        kind,
+    )
+    errors = torch.cat([train_errors, novel_errors], dim=1)
+    # Rays with no other training view to warp into never count as reliable.
+    errors = torch.where(usable[None], errors, torch.full_like(errors, float("inf")))
+    pseudo = select_pseudo_depth(errors, loss_depths, threshold)
+    train, novel = slice(0, num_train_rays), slice(num_train_rays, num_rays)
+    loss_train = geometric_adaptation_loss(
+        loss_depths[:, train], pseudo._replace(depth=pseudo.depth[train], reliable=pseudo.reliable[train])
+    )
+    loss_novel = geometric_adaptation_loss(
+        loss_depths[:, novel], pseudo._replace(depth=pseudo.depth[novel], reliable=pseudo.reliable[novel])
+    )
+    chosen = torch.where(pseudo.reliable, pseudo.scale, torch.full_like(pseudo.scale, -1))
+    return AdaptationResult(loss_train, loss_novel, chosen, errors)
+
+
+def scale_statistics(chosen_scale: Int[Tensor, "rays"], num_scales: int) -> Dict[str, float]:
+    """Fraction of rays whose pseudo depth came from each scale, and of rays left out (paper Fig.
+    "Cross-scale geometric adaptation in training"); the fractions sum to 1."""
+    total = max(1, chosen_scale.numel())
+    stats = {f"geo_scale{scale}_fraction": float((chosen_scale == scale).sum()) / total for scale in range(num_scales)}
+    stats["geo_left_out_fraction"] = float((chosen_scale < 0).sum()) / total
+    return stats
+
+
+class ScaleFractionHistory:
+    """Per-step scale fractions kept during training, written as JSON and a PNG plot."""
+
+    def __init__(self) -> None:
+        self.steps: List[int] = []
+        self.rows: List[Dict[str, float]] = []
+
+    def record(self, step: int, stats: Dict[str, float]) -> None:
+        self.steps.append(step)
+        self.rows.append(dict(stats))
+
+    def write(self, folder: Path) -> Path:
+        """Write ``geometric_adaptation.json`` and ``geometric_adaptation.png`` into ``folder``; returns the PNG."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "geometric_adaptation.json").write_text(json.dumps({"steps": self.steps, "stats": self.rows}))
+        figure, axis = plt.subplots(figsize=(6, 3.5))
+        keys = sorted({key for row in self.rows for key in row})
+        for key in keys:
+            label = key.replace("geo_", "").replace("_fraction", "").replace("scale", "scale ")
+            axis.plot(self.steps, [row.get(key, float("nan")) for row in self.rows], label=label)
+        axis.set_xlabel("training step")
+        axis.set_ylabel("fraction of rays")
+        axis.set_ylim(0, 1)
+        axis.set_title("Pseudo-depth source per scale (cross-scale geometric adaptation)")
+        axis.legend(loc="upper right", fontsize="small")
+        figure.tight_layout()
+        path = folder / "geometric_adaptation.png"
+        figure.savefig(path, dpi=100)
+        plt.close(figure)
+        return path

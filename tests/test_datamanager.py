@@ -1,0 +1,91 @@
+"""FrugalDataManager: patch-sampled training rays, spiral novel rays, nearest views, determinism."""
+
+import pytest
+import torch
+
+from frugalnerf_ns.datamanager import FrugalDataManagerConfig
+from frugalnerf_ns.dataparsers.nerfstudio_format import FewShotNerfstudioDataParserConfig
+
+
+def manager_for(scene, **overrides):
+    fields = dict(train_num_rays_per_batch=100, num_novel_rays_per_batch=40, patch_size=3)
+    fields.update(overrides)
+    config = FrugalDataManagerConfig(dataparser=FewShotNerfstudioDataParserConfig(data=scene), **fields)
+    return config.setup(device="cpu", test_mode="val")
+
+
+@pytest.fixture(scope="module")
+def manager(procedural_scene):
+    return manager_for(procedural_scene)
+
+
+def test_training_rays_come_in_k_by_k_patches(manager):
+    bundle, batch = manager.next_train(0)
+    k = 3
+    num_train = batch["num_train_rays"]
+    assert num_train == (100 // 9) * 9 == manager.get_train_rays_per_batch()
+    assert batch["patch_size"] == k
+    patches = batch["indices"].reshape(-1, k * k, 3)
+    for patch in patches:
+        view, top, left = patch[0].tolist()
+        rows, cols = torch.meshgrid(torch.arange(k) + top, torch.arange(k) + left, indexing="ij")
+        assert (patch[:, 0] == view).all()
+        assert patch[:, 1].tolist() == rows.flatten().tolist()
+        assert patch[:, 2].tolist() == cols.flatten().tolist()
+    idx = batch["indices"]
+    assert torch.equal(batch["image"], manager.train_images[idx[:, 0], idx[:, 1], idx[:, 2]])
+    # Each training ray is the one nerfstudio generates for its pixel.
+    cameras = manager.train_dataset.cameras
+    for ray in (0, 7, num_train - 1):
+        view, row, col = idx[ray].tolist()
+        expected = cameras.generate_rays(camera_indices=view)
+        assert torch.allclose(bundle.origins[ray], expected.origins[row, col], atol=1e-5)
+        assert torch.allclose(bundle.directions[ray], expected.directions[row, col], atol=1e-5)
+
+
+def test_novel_rays_follow_the_training_rays_and_come_from_the_spiral(manager):
+    bundle, batch = manager.next_train(1)
+    num_train = batch["num_train_rays"]
+    novel = batch["novel_indices"]
+    assert novel.shape == (40, 3) and bundle.origins.shape[0] == num_train + 40
+    # 2x2 patches: consecutive groups of four share a pose and cover a 2x2 block.
+    groups = novel.reshape(-1, 4, 3)
+    assert (groups[:, :, 0] == groups[:, :1, 0]).all()
+    assert (groups[:, :, 1] - groups[:, :1, 1]).tolist() == [[0, 0, 1, 1]] * len(groups)
+    assert (groups[:, :, 2] - groups[:, :1, 2]).tolist() == [[0, 1, 0, 1]] * len(groups)
+    spiral = manager.novel_cameras
+    assert spiral is not None and len(spiral) == manager.config.num_novel_poses
+    centers = spiral.camera_to_worlds[novel[:, 0], :3, 3]
+    assert torch.allclose(bundle.origins[num_train:], centers, atol=1e-5)
+    train_centers = manager.train_dataset.cameras.camera_to_worlds[:, :3, 3]
+    expected = torch.cdist(centers, train_centers).argmin(dim=-1)
+    assert torch.equal(batch["nearest_view"][num_train:], expected)
+
+
+def test_training_views_warp_into_their_nearest_other_view(manager):
+    _, batch = manager.next_train(2)
+    centers = manager.train_dataset.cameras.camera_to_worlds[:, :3, 3]
+    distance = torch.cdist(centers, centers) + torch.diag(torch.full((len(centers),), float("inf")))
+    expected = distance.argmin(dim=-1)
+    assert torch.equal(manager.train_nearest_view, expected)
+    view = batch["indices"][:, 0]
+    assert torch.equal(batch["nearest_view"][: batch["num_train_rays"]], expected[view])
+    assert (batch["nearest_view"][: batch["num_train_rays"]] != view).all()
+    num_views = len(centers)
+    assert batch["warp_images"].shape == (num_views, *manager.train_images.shape[1:3], 3)
+    assert batch["warp_camera_to_worlds"].shape == (num_views, 3, 4) and batch["warp_intrinsics"].shape == (num_views, 4)
+
+
+def test_batches_are_deterministic_under_the_seed(procedural_scene):
+    first, second = manager_for(procedural_scene), manager_for(procedural_scene)
+    other = manager_for(procedural_scene, seed=1)
+    for step in range(3):
+        a, b, c = first.next_train(step)[1], second.next_train(step)[1], other.next_train(step)[1]
+        assert torch.equal(a["indices"], b["indices"]) and torch.equal(a["novel_indices"], b["novel_indices"])
+    assert not torch.equal(a["indices"], c["indices"])
+
+
+def test_novel_views_can_be_turned_off(procedural_scene):
+    manager = manager_for(procedural_scene, novel_views=False)
+    bundle, batch = manager.next_train(0)
+    assert "novel_indices" not in batch and bundle.origins.shape[0] == batch["num_train_rays"]

@@ -1,0 +1,82 @@
+"""L_geo on a real FrugalDataManager batch: the model's losses, statistics and the training plot."""
+
+import json
+
+import pytest
+import torch
+
+from frugalnerf_ns.geometric_adaptation import ScaleFractionHistory, cross_scale_geometric_adaptation, scale_statistics
+from frugalnerf_ns.model import FrugalNeRFModelConfig
+from tests.test_datamanager import manager_for
+
+
+@pytest.fixture(scope="module")
+def model_and_batch(procedural_scene):
+    manager = manager_for(procedural_scene, train_num_rays_per_batch=225, num_novel_rays_per_batch=64, patch_size=5)
+    config = FrugalNeRFModelConfig(
+        initial_voxels=24**3, final_voxels=24**3, upsample_iters=(), alpha_mask_iters=(),
+        density_components=(4, 2, 2), appearance_components=(8, 2, 2), mlp_hidden_dim=16, background="white",
+        density_activation="softplus", depth_smoothness_weight=1.0, reprojection_threshold=1.0,
+    )
+    torch.manual_seed(0)
+    model = config.setup(scene_box=manager.train_dataset.scene_box, num_train_data=len(manager.train_dataset), metadata={})
+    model.train()
+    bundle, batch = manager.next_train(0)
+    return model, bundle, batch
+
+
+def test_losses_include_geometric_adaptation_and_smoothness_with_gradients(model_and_batch):
+    model, bundle, batch = model_and_batch
+    outputs = model(bundle)
+    metrics = model.get_metrics_dict(outputs, batch)
+    loss_dict = model.get_loss_dict(outputs, batch, metrics)
+    assert {"rgb_loss", "geo_loss", "depth_smoothness"} <= set(loss_dict)
+    for value in loss_dict.values():
+        assert torch.isfinite(value)
+    assert float(loss_dict["geo_loss"]) > 0
+    fractions = [float(metrics[f"geo_scale{s}_fraction"]) for s in range(3)] + [float(metrics["geo_left_out_fraction"])]
+    assert sum(fractions) == pytest.approx(1.0)
+    # Only the training rays enter the colour loss: the batch's image has exactly that many rows.
+    assert batch["image"].shape[0] == batch["num_train_rays"] < outputs["rgb"].shape[0]
+    model.zero_grad()
+    loss_dict["geo_loss"].backward()
+    grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
+    assert grads and any(float(g.abs().sum()) > 0 for g in grads)
+
+
+def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):
+    model, bundle, batch = model_and_batch
+    model.config.geo_weight = 0.0
+    try:
+        outputs = model(bundle)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        assert "geo_loss" not in loss_dict
+    finally:
+        model.config.geo_weight = 0.01
+
+
+def test_rays_without_another_view_are_left_out():
+    # One camera at the origin looking down -z; rays whose nearest view is -1 (a single training view).
+    images = torch.rand(1, 8, 8, 3)
+    c2w = torch.eye(4)[:3][None]
+    intrinsics = torch.tensor([[8.0, 8.0, 4.0, 4.0]])
+    origins = torch.zeros(4, 3)
+    directions = torch.tensor([0.0, 0.0, -1.0]).expand(4, 3)
+    depths = torch.full((3, 4), 2.0, requires_grad=True)
+    result = cross_scale_geometric_adaptation(
+        origins, directions, depths, depths, torch.rand(4, 3), torch.full((4,), -1), 4, 2, images, c2w, intrinsics, 0.5
+    )
+    assert (result.chosen_scale == -1).all()
+    assert float(result.loss_train) == 0.0 and float(result.loss_novel) == 0.0
+    assert scale_statistics(result.chosen_scale, 3)["geo_left_out_fraction"] == 1.0
+
+
+def test_scale_history_writes_json_and_png(tmp_path):
+    history = ScaleFractionHistory()
+    for step in range(5):
+        history.record(step, {"geo_scale0_fraction": 0.2, "geo_scale1_fraction": 0.3, "geo_scale2_fraction": 0.4,
+                              "geo_left_out_fraction": 0.1})
+    png = history.write(tmp_path)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    data = json.loads((tmp_path / "geometric_adaptation.json").read_text())
+    assert data["steps"] == list(range(5)) and data["stats"][0]["geo_scale2_fraction"] == 0.4
