@@ -38,17 +38,24 @@ def device_args() -> List[str]:
     return [] if torch.cuda.is_available() else ["--machine.device-type", "cpu"]
 
 
+def run_location(out: Path, scene: str, method: str, label: str, timestamp: str = "bench"):
+    """(experiment name, run folder) of one run. Variants keep the registered method name, which ns-eval and
+    eval_setup look up, and get their own experiment folder instead."""
+    experiment = scene if label == method else f"{scene}-{label.replace(method, '').strip('[]')}"
+    return experiment, out / "runs" / experiment / method / timestamp
+
+
 def run_method(
     method: str, scene: str, data: Path, parser_args: List[str], extra: List[str], out: Path, label: Optional[str] = None
 ) -> Dict[str, Any]:
     """Train ``method`` (shown as ``label``) on one scene, score its test views, return one table row."""
     label = label or method
     timestamp = "bench"
-    run_dir = out / "runs" / scene / label / timestamp
+    experiment, run_dir = run_location(out, scene, method, label, timestamp)
     train = [
         "/usr/bin/time", "-f", "PEAK_RSS_KB %M",
         sys.executable, "-m", "frugalnerf_ns.offline_tools", "train", method, "--data", str(data),
-        "--output-dir", str(out / "runs"), "--experiment-name", scene, "--method-name", label, "--timestamp", timestamp,
+        "--output-dir", str(out / "runs"), "--experiment-name", experiment, "--timestamp", timestamp,
         *QUIET, *device_args(), *extra, *parser_args,
     ]
     start = time.time()

@@ -68,3 +68,12 @@ def test_ablation_variants_name_real_options_of_the_presets():
             for part in parents:
                 target = getattr(target, part)
             assert hasattr(target, leaf), (name, option)
+
+
+def test_variant_runs_keep_the_registered_method_name_in_their_path(tmp_path):
+    bench = load_script("benchmark_scenes")
+    assert bench.run_location(tmp_path, "fern", "tensorf", "tensorf") == ("fern", tmp_path / "runs/fern/tensorf/bench")
+    experiment, run_dir = bench.run_location(tmp_path, "fern", "frugalnerf-cpu", "frugalnerf-cpu[no-geo]")
+    assert experiment == "fern-no-geo"
+    # nerfstudio writes <output>/<experiment>/<method>/<timestamp>; the method part must be registered.
+    assert run_dir == tmp_path / "runs" / "fern-no-geo" / "frugalnerf-cpu" / "bench"
