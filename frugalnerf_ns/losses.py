@@ -1,7 +1,7 @@
 """FrugalNeRF's loss terms, one function each (pure torch).
 
-Eq. numbers refer to ``../shared/paper/frugalnerf-paper.tex``. Geometric adaptation (Eq. 2-10) and the
-sparse / monocular depth terms of Eq. 11 arrive with later issues and will live here too.
+Eq. numbers refer to ``../shared/paper/frugalnerf-paper.tex``. The geometric adaptation terms (Eq. 2-10)
+live with their geometry in ``reprojection.py``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""FrugalNeRF model for nerfstudio: multi-scale rendering, Eq. 1 colour loss and the regularisers.
+"""FrugalNeRF model for nerfstudio: multi-scale rendering, Eq. 1 colour loss, the regularisers and the
+cross-scale geometric adaptation (Eq. 2-10, on the batches of ``FrugalDataManager``).
 
-Geometric adaptation (Eq. 2-10), novel-view rays, sparse depth and monocular depth come with later issues;
-``get_loss_dict`` gathers terms from ``_extra_losses`` so they can be added without touching the rest.
+Sparse and monocular depth come with a later issue; ``get_loss_dict`` gathers terms from ``_extra_losses``.
 """
 
 from __future__ import annotations
