@@ -173,7 +173,6 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             "indices": indices,
             "num_train_rays": indices.shape[0],
             "patch_size": k,
-            "train_view": view,
             "nearest_view": self.train_nearest_view[view],
             "warp_images": self.warp_images,
             "warp_camera_to_worlds": self.warp_camera_to_worlds,

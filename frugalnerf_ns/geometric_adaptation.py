@@ -33,8 +33,6 @@ class AdaptationResult(NamedTuple):
     chosen_scale: Int[Tensor, "rays"]
     """Scale whose depth became the pseudo ground truth, -1 where the ray was left out (error above the
     threshold, or no other training view to warp into)."""
-    errors: Float[Tensor, "scales rays"]
-    """Reprojection error of every ray at every scale (train rays: their patch's error)."""
 
 
 def cross_scale_geometric_adaptation(
@@ -101,15 +99,17 @@ def cross_scale_geometric_adaptation(
         loss_depths[:, novel], pseudo._replace(depth=pseudo.depth[novel], reliable=pseudo.reliable[novel])
     )
     chosen = torch.where(pseudo.reliable, pseudo.scale, torch.full_like(pseudo.scale, -1))
-    return AdaptationResult(loss_train, loss_novel, chosen, errors)
+    return AdaptationResult(loss_train, loss_novel, chosen)
 
 
 def scale_statistics(chosen_scale: Int[Tensor, "rays"], num_scales: int) -> Dict[str, float]:
     """Fraction of rays whose pseudo depth came from each scale, and of rays left out (paper Fig.
     "Cross-scale geometric adaptation in training"); the fractions sum to 1."""
     total = max(1, chosen_scale.numel())
-    stats = {f"geo_scale{scale}_fraction": float((chosen_scale == scale).sum()) / total for scale in range(num_scales)}
-    stats["geo_left_out_fraction"] = float((chosen_scale < 0).sum()) / total
+    # One count and one device-to-host copy per step (this runs every training step).
+    counts = torch.bincount(chosen_scale.flatten() + 1, minlength=num_scales + 1).tolist()
+    stats = {f"geo_scale{scale}_fraction": counts[scale + 1] / total for scale in range(num_scales)}
+    stats["geo_left_out_fraction"] = counts[0] / total
     return stats
 
 
