@@ -3,8 +3,10 @@
 Every training step returns one ray bundle holding, in this order:
 - training rays sampled as k x k pixel patches (patch-major: the k*k rays of a patch are contiguous);
 - novel-view rays sampled as 2x2 patches from poses on a spiral around the training cameras (paper
-  Sec. 3.4), generated once.
-The batch says how many rays are training rays and carries what the model needs to warp (Eq. 2-9): all
+  Sec. 3.4), generated once;
+- rays through sparse points triangulated from the training views (L_sd, ``sparse_points.py``), with the
+  depth each should render.
+The batch says how many rays each group holds and carries what the model needs to warp (Eq. 2-9): all
 training images and their cameras (there are only 2-4) on the model's device, and per ray the index of the
 nearest other training camera. Batches are deterministic under ``seed``. The test dataset adds the
 evaluation object mask (DTU protocol).
@@ -13,6 +15,7 @@ evaluation object mask (DTU protocol).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Dict, Optional, Tuple, Type
 
 import numpy as np
@@ -28,7 +31,17 @@ from PIL import Image
 from torch import Tensor
 
 from frugalnerf_ns.data import DataError
+from frugalnerf_ns.mono_depth import load_or_predict
 from frugalnerf_ns.novel_views import nearest_training_views, spiral_focus_depth, spiral_poses
+from frugalnerf_ns.sparse_points import (
+    SparseDepth,
+    TriangulationOptions,
+    cache_file_name,
+    cache_key,
+    load_sparse_depth,
+    save_sparse_depth,
+    triangulate_training_views,
+)
 
 
 class FrugalDataset(InputDataset):
@@ -76,6 +89,23 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     """Speed of the spiral's motion along the viewing axis relative to its angular speed."""
     seed: int = 0
     """Seed of the ray sampling (batches are deterministic)."""
+    sparse_depth: bool = True
+    """Triangulate SIFT matches between the training views with pycolmap (fixed known cameras, training
+    views only) and supervise the rendered depth at those points (L_sd)."""
+    num_sparse_rays_per_batch: int = 256
+    """Rays through triangulated points per step (every observation when there are fewer)."""
+    min_sparse_points: int = 20
+    """With fewer triangulated points training goes on without L_sd (and says so once)."""
+    triangulation: TriangulationOptions = field(default_factory=TriangulationOptions)
+    """Which triangulated points are kept."""
+    sparse_cache_dir: Optional[Path] = None
+    """Folder of the cached points (default: frugalnerf_cache inside the scene's data folder). The cache is
+    keyed by training views and image size and checked against the images and cameras before use."""
+    mono_depth_model: Optional[Path] = None
+    """Folder of a transformers depth-estimation model already on disk (DPT, Depth-Anything) for the optional
+    monocular depth loss L_d (--pipeline.model.mono-depth-weight); nothing is downloaded. None: off."""
+    mono_depth_is_disparity: bool = True
+    """The depth model predicts relative inverse depth (DPT and Depth-Anything do)."""
 
 
 NOVEL_PATCH = 2  # novel-view rays come in 2x2 patches for the depth smoothness loss
@@ -91,6 +121,8 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
     train_nearest_view: Int[Tensor, "views"]
     novel_cameras: Optional[Cameras] = None
     novel_nearest_view: Optional[Int[Tensor, "poses"]] = None
+    sparse: Optional[SparseDepth] = None
+    mono_depth: Optional[Float[Tensor, "views height width"]] = None
 
     def setup_train(self) -> None:
         assert self.train_dataset is not None
@@ -129,6 +161,68 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
                 self.device
             )
             self.novel_ray_generator = RayGenerator(self.novel_cameras.to(self.device))
+        # Only training needs the points (eval and the viewer set the datamanager up in another test_mode).
+        if self.test_mode == "val" and self.config.sparse_depth and self.config.num_sparse_rays_per_batch > 0:
+            if len(centers) >= 2:
+                self.sparse = self._sparse_points(cameras)
+        model_path = getattr(self.config, "mono_depth_model", None)
+        if self.test_mode == "val" and model_path is not None:
+            self.mono_depth = self._mono_depth(Path(model_path))
+
+    def _mono_depth(self, model_path: Path) -> Tensor:
+        """The depth model's predictions for the training images, cached next to the data."""
+        height, width = self.warp_images.shape[1:3]
+        folder = self.config.sparse_cache_dir or Path(self.config.dataparser.data) / "frugalnerf_cache"
+        names = [str(f) for f in self.train_dataparser_outputs.image_filenames]
+        cache = folder / cache_file_name(names, width, height).replace("sparse_depth_", "mono_depth_")
+        depth = load_or_predict(model_path, self.warp_images, cache, self.config.mono_depth_is_disparity)
+        CONSOLE.print(f"frugalnerf: monocular depth of {len(depth)} training views from {model_path} (L_d).")
+        return depth.to(self.device)
+
+    def _sparse_points(self, cameras: Cameras) -> Optional[SparseDepth]:
+        """Triangulated points of the training views, from the cache when it matches; None when too few."""
+        images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in self.warp_images]
+        c2w = cameras.camera_to_worlds.double()
+        intrinsics = torch.stack([cameras.fx[:, 0], cameras.fy[:, 0], cameras.cx[:, 0], cameras.cy[:, 0]], -1).double()
+        near_far = (self.train_dataparser_outputs.metadata or {}).get("near_far")
+        bounds = None if near_far is None else (float(near_far[0]), float(near_far[1]))
+        # Configs saved before this option existed load without it (nerfstudio rebuilds them from YAML).
+        options = getattr(self.config, "triangulation", None) or TriangulationOptions()
+        key = cache_key(images, c2w, intrinsics, options, bounds)
+        height, width = images[0].shape[:2]
+        folder = self.config.sparse_cache_dir or Path(self.config.dataparser.data) / "frugalnerf_cache"
+        path = folder / cache_file_name([str(f) for f in self.train_dataparser_outputs.image_filenames], width, height)
+        sparse, why = load_sparse_depth(path, key)
+        if sparse is None:
+            if why != "missing":
+                CONSOLE.print(f"[bold yellow]frugalnerf: sparse-depth cache {path} is {why}: rebuilding it.")
+            sparse = triangulate_training_views(images, c2w, intrinsics, options, bounds)
+            try:
+                save_sparse_depth(path, sparse, key)
+            except OSError as err:
+                CONSOLE.print(f"frugalnerf: could not cache sparse points in {path} ({err}); they stay in memory.")
+        if sparse.num_points < self.config.min_sparse_points:
+            CONSOLE.print(
+                f"[bold yellow]frugalnerf: triangulating the training views found {sparse.num_points} points "
+                f"(fewer than --pipeline.datamanager.min-sparse-points {self.config.min_sparse_points}): training "
+                "goes on without the sparse depth loss."
+            )
+            return None
+        CONSOLE.print(f"frugalnerf: {sparse.num_points} sparse points from the training views supervise depth (L_sd).")
+        return SparseDepth(*(t.float().to(self.device) if t.is_floating_point() else t.to(self.device) for t in sparse))
+
+    def _sparse_rays(self) -> Tuple[RayBundle, Tensor]:
+        """Rays through the pixels where sampled points project, and the depths they should render."""
+        assert self.sparse is not None
+        count = self.sparse.view.shape[0]
+        num = min(count, self.config.num_sparse_rays_per_batch)
+        chosen = torch.randperm(count, generator=self.generator)[:num].to(self.device)
+        view = self.sparse.view[chosen]
+        # nerfstudio's coords are (row, column) in the same continuous pixel units as (u, v).
+        coords = self.sparse.pixels[chosen].flip(-1)
+        cameras = self.train_ray_generator.cameras
+        bundle = cameras.generate_rays(camera_indices=view[:, None], coords=coords)
+        return bundle, self.sparse.depth[chosen]
 
     def _spiral_cameras(self, cameras: Cameras) -> Cameras:
         """The spiral's poses with the first training camera's intrinsics."""
@@ -178,6 +272,8 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             "warp_camera_to_worlds": self.warp_camera_to_worlds,
             "warp_intrinsics": self.warp_intrinsics,
         }
+        if self.mono_depth is not None:
+            batch["mono_depth"] = self.mono_depth[view, indices_dev[:, 1], indices_dev[:, 2]]
         if self.novel_cameras is not None and self.novel_nearest_view is not None:
             num_novel = max(1, self.config.num_novel_rays_per_batch // NOVEL_PATCH**2)
             novel_height, novel_width = int(self.novel_cameras.height[0]), int(self.novel_cameras.width[0])
@@ -191,6 +287,11 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             bundle = concatenate_ray_bundles(bundle, novel_bundle)
             batch["novel_indices"] = novel
             batch["nearest_view"] = torch.cat([batch["nearest_view"], nearest])
+        batch["num_novel_rays"] = batch["nearest_view"].shape[0] - batch["num_train_rays"]
+        if self.sparse is not None:
+            sparse_bundle, depth = self._sparse_rays()
+            bundle = concatenate_ray_bundles(bundle, sparse_bundle)
+            batch["sparse_depth"] = depth
         return bundle, batch
 
     def get_train_rays_per_batch(self) -> int:

@@ -91,3 +91,46 @@ def distortion_loss(
     cross = 2.0 * (weights * (t * prefix_w - prefix_wt)).sum(dim=-1)
     self_term = (weights.square() * step).sum(dim=-1) / 3.0
     return (cross + self_term).mean()
+
+
+def occlusion_loss(
+    densities: Float[Tensor, "rays samples"],
+    colors: Optional[Float[Tensor, "rays samples 3"]],
+    num_near_samples: int,
+    num_background_samples: int,
+    shaded: Optional[Tensor] = None,
+    background_tolerance: float = 0.01,
+) -> Tensor:
+    """Occlusion regulariser (FreeNeRF; reference code ``cal_occ_loss``): mean density of the first
+    ``num_near_samples`` samples of every ray, where few-shot fields grow floaters hugging the cameras.
+
+    With ``colors`` (the background prior for object scenes on black or white), samples among the first
+    ``num_background_samples`` whose colour is black or white (mean within ``background_tolerance`` of 0 or
+    1) are penalised too: there the background colour is explained by density in front of the object.
+    ``shaded`` marks samples whose colour was evaluated; the others never count as background.
+    """
+    num_samples = densities.shape[-1]
+    index = torch.arange(num_samples, device=densities.device)
+    mask = (index < num_near_samples).expand_as(densities)
+    if colors is not None:
+        mean = colors.mean(dim=-1)
+        background = (mean < background_tolerance) | (mean > 1.0 - background_tolerance)
+        if shaded is not None:
+            background = background & shaded
+        mask = mask | (background & (index < num_background_samples))
+    return (densities * mask.to(densities.dtype)).mean()
+
+
+def loss_weight_schedule(step: int, total_steps: int, ratio: float) -> float:
+    """Factor on the decaying loss weights at ``step``: ratio^(step / total_steps).
+
+    The reference code multiplies the lower-scale colour, TV, depth-smoothness and sparse-depth weights by
+    the learning-rate decay factor every iteration (and divides the distortion weight by it), so by the last
+    step they have fallen (grown) by ``ratio``, as the learning rate has. Steps past the end keep the final
+    factor; ``ratio`` 1 (or no steps) turns the schedule off.
+    """
+    if total_steps <= 0 or ratio == 1.0:
+        return 1.0
+    if ratio <= 0:
+        raise ValueError(f"loss weight decay ratio must be positive, got {ratio}")
+    return float(ratio ** (min(max(step, 0), total_steps) / total_steps))

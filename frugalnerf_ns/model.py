@@ -1,7 +1,8 @@
 """FrugalNeRF model for nerfstudio: multi-scale rendering, Eq. 1 colour loss, the regularisers and the
 cross-scale geometric adaptation (Eq. 2-10, on the batches of ``FrugalDataManager``).
 
-Sparse and monocular depth come with a later issue; ``get_loss_dict`` gathers terms from ``_extra_losses``.
+Sparse depth (L_sd) supervises the rays the datamanager adds through triangulated points; ``get_loss_dict``
+gathers the depth terms from ``_extra_losses``.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ from frugalnerf_ns.geometric_adaptation import AdaptationResult, ScaleFractionHi
 from frugalnerf_ns.field import DensityActivation, FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.reprojection import ErrorKind, depth_smoothness_loss
+from frugalnerf_ns.mono_depth import per_view_pearson_loss
+from frugalnerf_ns.sparse_points import inverse_depth_loss
 from frugalnerf_ns.raymarch import RaySegments, composite_rgb, composite_weights, intersect_aabb, march_steps
 
 Background = Literal["random_white", "white", "black"]
@@ -114,6 +117,26 @@ class FrugalNeRFModelConfig(ModelConfig):
     in colour units for rmse, i.e. the warped patch is off by half the colour range)."""
     depth_smoothness_weight: float = 5e-3
     """Depth smoothness on novel-view 2x2 patches (LLFF 5e-3, DTU 50, RealEstate 0); lower scales / 16, 256."""
+    occlusion_weight: float = 0.0
+    """Occlusion regulariser (FreeNeRF): density of the first samples of every ray, for object scenes on a
+    black or white background; off (0) for forward-facing scenes and, in the reference, at 2 views."""
+    occlusion_near_samples: int = 10
+    """Samples nearest the camera (full scale; lower scales use proportionally fewer) the occlusion loss
+    always penalises."""
+    occlusion_background_samples: int = 15
+    """Samples nearest the camera in which black or white samples are also penalised (background prior)."""
+    occlusion_background_prior: bool = True
+    """Penalise near samples whose colour is black or white (the background of DTU-like object scenes)."""
+    sparse_depth_weight: float = 0.5
+    """lambda_sd: MSE between inverse rendered and inverse sparse-point depth (metric), at every scale
+    (LLFF / DTU 0.5, RealEstate 0.05); points come from the datamanager (--pipeline.datamanager.sparse-depth)."""
+    mono_depth_weight: float = 0.01
+    """lambda_d of the optional monocular depth loss (1 - Pearson correlation of rendered and predicted depth,
+    every scale); active only with --pipeline.datamanager.mono-depth-model."""
+    loss_weight_decay: float = 0.025
+    """Over the run the lower-scale colour, TV, occlusion, depth-smoothness, sparse and monocular depth weights
+    fall by this factor and the distortion weight grows by it (reference schedule, the learning rate's decay:
+    LLFF 0.025, DTU 0.05); 1 keeps every weight constant."""
 
 
 class ScaleRender(NamedTuple):
@@ -122,6 +145,9 @@ class ScaleRender(NamedTuple):
     accumulation: Float[Tensor, "rays 1"]
     weights: Float[Tensor, "rays samples"]
     t: Float[Tensor, "rays samples"]
+    densities: Float[Tensor, "rays samples"]
+    colors: Float[Tensor, "rays samples 3"]
+    shaded: Tensor
 
 
 class FrugalNeRFModel(Model):
@@ -164,6 +190,8 @@ class FrugalNeRFModel(Model):
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
         self.scale_history = ScaleFractionHistory()
+        # Factor of the decaying loss weights (losses.loss_weight_schedule), set before every training step.
+        self.loss_schedule_factor = 1.0
 
     @contextlib.contextmanager
     def full_scale_only(self) -> Iterator[None]:
@@ -212,7 +240,16 @@ class FrugalNeRFModel(Model):
                 if step == last:
                     CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
 
+        def schedule_loss_weights(step: int) -> None:
+            trainer = training_callback_attributes.trainer
+            if trainer is None:
+                return
+            # Computed from the step (not accumulated), so a resumed run continues the same curve.
+            total = trainer.config.max_num_iterations
+            self.loss_schedule_factor = losses.loss_weight_schedule(step, total, self.config.loss_weight_decay)
+
         return [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], schedule_loss_weights),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=self.config.upsample_iters),
             TrainingCallback(
                 [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=self.config.alpha_mask_iters
@@ -254,7 +291,7 @@ class FrugalNeRFModel(Model):
             dirs = directions[:, None, :].expand_as(positions)
             colors[shade] = self.field.color(positions[shade], dirs[shade], scale)
         rgb = composite_rgb(comp.weights, colors, background)
-        return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t)
+        return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade)
 
     def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Tensor]:
         shape = ray_bundle.origins.shape[:-1]
@@ -287,6 +324,10 @@ class FrugalNeRFModel(Model):
                 outputs[f"t{suffix}"] = render.t
                 # The depth the field renders in (NDC t in NDC scenes): what L_geo and smoothness compare.
                 outputs[f"render_depth{suffix}"] = render.depth
+                if self.config.occlusion_weight > 0:
+                    outputs[f"densities{suffix}"] = render.densities
+                    outputs[f"sample_colors{suffix}"] = render.colors
+                    outputs[f"shaded{suffix}"] = render.shaded
         if self.training:
             outputs["ray_origins"] = ray_bundle.origins.reshape(-1, 3)
             outputs["ray_directions"] = ray_bundle.directions.reshape(-1, 3)
@@ -300,9 +341,8 @@ class FrugalNeRFModel(Model):
         return image[..., :3]
 
     def _scale_weights(self) -> List[float]:
-        return [self.config.full_scale_color_weight] + [self.config.lower_scale_color_weight] * (
-            self.field.num_scales - 1
-        )
+        lower = self.config.lower_scale_color_weight * self.loss_schedule_factor
+        return [self.config.full_scale_color_weight] + [lower] * (self.field.num_scales - 1)
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
         target = self._target_rgb(batch["image"].to(self.device), outputs["background"])
@@ -328,9 +368,11 @@ class FrugalNeRFModel(Model):
         return loss_dict
 
     def _regularizers(self, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
-        """TV, L1 and distortion at every scale; lower scales divided by ratio^(2l) (16 and 256 for s = 4)."""
+        """TV, L1, distortion and occlusion at every scale; lower scales divided by ratio^(2l) (16 and 256 for
+        s = 4). TV and occlusion decay with the loss-weight schedule and distortion grows with it (reference)."""
         cfg = self.config
         terms: Dict[str, Tensor] = {}
+        decay = self.loss_schedule_factor
 
         def add(name: str, value: Tensor) -> None:
             terms[name] = terms.get(name, 0.0) + value
@@ -342,37 +384,66 @@ class FrugalNeRFModel(Model):
             app_planes, app_lines = self.field.appearance_grid.scale_views(stride)
             if cfg.appearance_tv_weight > 0:
                 tv = losses.grid_tv_loss(app_planes, app_lines, cfg.tv_plane_weight, cfg.tv_line_weight)
-                add("tv_appearance", cfg.appearance_tv_weight * factor * tv)
+                add("tv_appearance", cfg.appearance_tv_weight * decay * factor * tv)
             if cfg.density_tv_weight > 0:
                 tv = losses.grid_tv_loss(
                     density_planes, density_lines, cfg.tv_plane_weight, cfg.tv_line_weight, edge_planes=app_planes
                 )
-                add("tv_density", cfg.density_tv_weight * factor * tv)
+                add("tv_density", cfg.density_tv_weight * decay * factor * tv)
             if cfg.density_l1_weight > 0:
                 add("l1_density", cfg.density_l1_weight * factor * losses.density_l1_loss(density_planes, density_lines))
             if cfg.distortion_weight > 0:
                 suffix = scale_suffix(scale)
                 step = self.field.sample_step(scale, cfg.step_ratio)
                 dist = losses.distortion_loss(outputs[f"weights{suffix}"], outputs[f"t{suffix}"], step)
-                add("distortion", cfg.distortion_weight * factor * dist)
+                add("distortion", cfg.distortion_weight / decay * factor * dist)
+            suffix = scale_suffix(scale)
+            if cfg.occlusion_weight > 0 and f"densities{suffix}" in outputs:
+                # Lower scales take proportionally fewer samples: the same distance from the camera.
+                occ = losses.occlusion_loss(
+                    outputs[f"densities{suffix}"],
+                    outputs[f"sample_colors{suffix}"] if cfg.occlusion_background_prior else None,
+                    max(1, cfg.occlusion_near_samples // stride),
+                    max(1, cfg.occlusion_background_samples // stride),
+                    shaded=outputs[f"shaded{suffix}"],
+                )
+                add("occlusion", cfg.occlusion_weight * decay * factor * occ)
         return terms
 
     def _extra_losses(self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]) -> Dict[str, Tensor]:
-        """Geometric adaptation (Eq. 10) and depth smoothness on novel-view patches."""
+        """Geometric adaptation (Eq. 10), depth smoothness on novel-view patches, sparse depth (L_sd) and the
+        optional monocular depth (L_d)."""
         cfg = self.config
         terms: Dict[str, Tensor] = {}
         adaptation = self._geometric_adaptation(outputs, batch)
         if adaptation is not None:
             terms["geo_loss"] = cfg.geo_weight * (adaptation.loss_train + adaptation.loss_novel)
         num_train = batch.get("num_train_rays")
-        num_novel = outputs["rgb"].shape[0] - num_train if num_train is not None else 0
+        num_novel = 0
+        if num_train is not None:  # FrugalDataManager's batch: training, novel, then sparse-depth rays
+            num_novel = batch.get("num_novel_rays", outputs["rgb"].shape[0] - num_train)
+        if "sparse_depth" in batch and cfg.sparse_depth_weight > 0:
+            start = num_train + num_novel
+            target = batch["sparse_depth"].to(self.device)
+            sparse = sum(
+                inverse_depth_loss(outputs[f"depth{scale_suffix(s)}"][start:, 0], target) for s in range(self.field.num_scales)
+            )
+            terms["sparse_depth"] = cfg.sparse_depth_weight * self.loss_schedule_factor * sparse
+        if "mono_depth" in batch and cfg.mono_depth_weight > 0:
+            view = batch["indices"][:, 0].to(self.device)
+            predicted = batch["mono_depth"].to(self.device)
+            mono = sum(
+                per_view_pearson_loss(outputs[f"depth{scale_suffix(s)}"][:num_train, 0], predicted, view)
+                for s in range(self.field.num_scales)
+            )
+            terms["mono_depth"] = cfg.mono_depth_weight * self.loss_schedule_factor * mono
         if cfg.depth_smoothness_weight > 0 and num_novel >= 4:
             smooth = 0.0
             for scale in range(self.field.num_scales):
                 depth = outputs[f"render_depth{scale_suffix(scale)}"][num_train:, 0]
                 patches = depth[: num_novel // 4 * 4].reshape(-1, 2, 2)
                 smooth = smooth + depth_smoothness_loss(patches) / self.field.stride(scale) ** 2
-            terms["depth_smoothness"] = cfg.depth_smoothness_weight * smooth
+            terms["depth_smoothness"] = cfg.depth_smoothness_weight * self.loss_schedule_factor * smooth
         return terms
 
     def _geometric_adaptation(self, outputs: Dict[str, Tensor], batch: Dict) -> Optional[AdaptationResult]:
@@ -383,14 +454,15 @@ class FrugalNeRFModel(Model):
         if "geo_adaptation" in outputs:
             return outputs["geo_adaptation"]  # type: ignore[return-value]
         num_train = batch["num_train_rays"]
+        end = batch["nearest_view"].shape[0]  # training and novel rays; sparse-depth rays follow and stay out
         target = self._target_rgb(batch["image"].to(self.device), torch.ones(3, device=self.device))
-        source = torch.cat([target, outputs["rgb"][num_train:].detach()])  # Eq. 6: novel rays use the render
+        source = torch.cat([target, outputs["rgb"][num_train:end].detach()])  # Eq. 6: novel rays use the render
         scales = range(self.field.num_scales)
         result = cross_scale_geometric_adaptation(
-            outputs["ray_origins"],
-            outputs["ray_directions"],
-            torch.stack([outputs[f"depth{scale_suffix(s)}"][:, 0] for s in scales]),
-            torch.stack([outputs[f"render_depth{scale_suffix(s)}"][:, 0] for s in scales]),
+            outputs["ray_origins"][:end],
+            outputs["ray_directions"][:end],
+            torch.stack([outputs[f"depth{scale_suffix(s)}"][:end, 0] for s in scales]),
+            torch.stack([outputs[f"render_depth{scale_suffix(s)}"][:end, 0] for s in scales]),
             source,
             batch["nearest_view"],
             num_train,

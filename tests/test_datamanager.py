@@ -89,3 +89,40 @@ def test_novel_views_can_be_turned_off(procedural_scene):
     manager = manager_for(procedural_scene, novel_views=False)
     bundle, batch = manager.next_train(0)
     assert "novel_indices" not in batch and bundle.origins.shape[0] == batch["num_train_rays"]
+
+
+def test_sparse_rays_follow_the_novel_rays_and_pass_through_their_points(procedural_scene, tmp_path):
+    manager = manager_for(procedural_scene, min_sparse_points=1, num_sparse_rays_per_batch=3, sparse_cache_dir=tmp_path)
+    sparse = manager.sparse
+    assert sparse is not None and sparse.num_points >= 1
+    bundle, batch = manager.next_train(0)
+    num_train, num_novel = batch["num_train_rays"], batch["num_novel_rays"]
+    depth = batch["sparse_depth"]
+    assert num_novel == 40 and depth.shape == (min(3, len(sparse.view)),)
+    start = num_train + num_novel
+    assert bundle.origins.shape[0] == start + depth.shape[0]
+    # Each sparse ray, walked out to its target depth, lands on one of the triangulated points.
+    ends = bundle.origins[start:] + bundle.directions[start:] * depth[:, None]
+    assert torch.cdist(ends, sparse.points.float()).amin(dim=1).max() < 1e-4
+    assert len(list(tmp_path.glob("sparse_depth_*.npz"))) == 1
+
+
+def test_sparse_cache_is_reused_and_a_corrupt_one_rebuilt(procedural_scene, tmp_path, capsys):
+    first = manager_for(procedural_scene, min_sparse_points=1, sparse_cache_dir=tmp_path)
+    (path,) = tmp_path.glob("sparse_depth_*.npz")
+    stamp = path.stat().st_mtime_ns
+    again = manager_for(procedural_scene, min_sparse_points=1, sparse_cache_dir=tmp_path)
+    assert path.stat().st_mtime_ns == stamp and torch.equal(again.sparse.points, first.sparse.points)
+    capsys.readouterr()
+    path.write_bytes(b"\x00garbage")
+    rebuilt = manager_for(procedural_scene, min_sparse_points=1, sparse_cache_dir=tmp_path)
+    assert "corrupt" in capsys.readouterr().out
+    assert torch.equal(rebuilt.sparse.points, first.sparse.points) and path.stat().st_size > 100
+
+
+def test_too_few_sparse_points_train_without_sparse_depth_and_say_so(procedural_scene, tmp_path, capsys):
+    manager = manager_for(procedural_scene, min_sparse_points=10_000, sparse_cache_dir=tmp_path)
+    out = capsys.readouterr().out
+    assert manager.sparse is None and "without the sparse depth loss" in out
+    _, batch = manager.next_train(0)
+    assert "sparse_depth" not in batch

@@ -11,8 +11,12 @@ from tests.test_datamanager import manager_for
 
 
 @pytest.fixture(scope="module")
-def model_and_batch(procedural_scene):
-    manager = manager_for(procedural_scene, train_num_rays_per_batch=225, num_novel_rays_per_batch=64, patch_size=5)
+def model_and_batch(procedural_scene, tmp_path_factory):
+    # The procedural scene triangulates only a few points: let them all count, so the batch has sparse rays.
+    manager = manager_for(
+        procedural_scene, train_num_rays_per_batch=225, num_novel_rays_per_batch=64, patch_size=5,
+        min_sparse_points=1, sparse_cache_dir=tmp_path_factory.mktemp("sparse"),
+    )
     config = FrugalNeRFModelConfig(
         initial_voxels=24**3, final_voxels=24**3, upsample_iters=(), alpha_mask_iters=(),
         density_components=(4, 2, 2), appearance_components=(8, 2, 2), mlp_hidden_dim=16, background="white",
@@ -30,7 +34,7 @@ def test_losses_include_geometric_adaptation_and_smoothness_with_gradients(model
     outputs = model(bundle)
     metrics = model.get_metrics_dict(outputs, batch)
     loss_dict = model.get_loss_dict(outputs, batch, metrics)
-    assert {"rgb_loss", "geo_loss", "depth_smoothness"} <= set(loss_dict)
+    assert {"rgb_loss", "geo_loss", "depth_smoothness", "sparse_depth"} <= set(loss_dict)
     for value in loss_dict.values():
         assert torch.isfinite(value)
     assert float(loss_dict["geo_loss"]) > 0
@@ -42,6 +46,28 @@ def test_losses_include_geometric_adaptation_and_smoothness_with_gradients(model
     loss_dict["geo_loss"].backward()
     grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
     assert grads and any(float(g.abs().sum()) > 0 for g in grads)
+
+
+def test_sparse_depth_loss_reads_the_trailing_rays_at_every_scale(model_and_batch):
+    from frugalnerf_ns.sparse_points import inverse_depth_loss
+
+    model, bundle, batch = model_and_batch
+    outputs = model(bundle)
+    loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+    n = batch["sparse_depth"].shape[0]
+    assert n > 0 and outputs["rgb"].shape[0] == batch["num_train_rays"] + batch["num_novel_rays"] + n
+    expected = sum(inverse_depth_loss(outputs[k][-n:, 0], batch["sparse_depth"]) for k in ("depth", "depth_scale1", "depth_scale2"))
+    assert float(loss_dict["sparse_depth"]) == pytest.approx(model.config.sparse_depth_weight * float(expected), rel=1e-5)
+    model.zero_grad()
+    loss_dict["sparse_depth"].backward()
+    grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
+    model.config.sparse_depth_weight = 0.0
+    try:
+        outputs = model(bundle)
+        assert "sparse_depth" not in model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+    finally:
+        model.config.sparse_depth_weight = 0.5
 
 
 def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):

@@ -58,3 +58,32 @@ def test_distortion_prefers_concentrated_weights_and_has_finite_gradients():
     assert losses.distortion_loss(peaked, t, 0.1) < losses.distortion_loss(spread, t, 0.1)
     losses.distortion_loss(spread, t, 0.1).backward()
     assert torch.isfinite(spread.grad).all()
+
+
+def test_loss_weight_schedule_follows_the_learning_rate_decay():
+    assert losses.loss_weight_schedule(0, 100, 0.025) == 1.0
+    assert losses.loss_weight_schedule(100, 100, 0.025) == pytest.approx(0.025)
+    assert losses.loss_weight_schedule(50, 100, 0.025) == pytest.approx(0.025**0.5)
+    # Past the end (a resumed run trains on) the factor stays at its final value.
+    assert losses.loss_weight_schedule(250, 100, 0.025) == pytest.approx(0.025)
+    assert losses.loss_weight_schedule(40, 100, 1.0) == 1.0
+    with pytest.raises(ValueError, match="positive"):
+        losses.loss_weight_schedule(1, 100, 0.0)
+
+
+def test_occlusion_loss_hand_computed_with_and_without_the_background_prior():
+    densities = torch.tensor([[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]], requires_grad=True)
+    colors = torch.full((2, 4, 3), 0.5)
+    colors[0, 2] = 1.0  # white sample inside the background range
+    colors[1, 3] = 0.0  # black, but beyond it
+    # Near samples only: the first one of each ray.
+    assert float(losses.occlusion_loss(densities, None, 1, 3).detach()) == pytest.approx((1.0 + 5.0) / 8)
+    # With the prior, the white third sample of ray 0 counts too; the black fourth sample of ray 1 does not.
+    loss = losses.occlusion_loss(densities, colors, 1, 3)
+    assert float(loss.detach()) == pytest.approx((1.0 + 3.0 + 5.0) / 8)
+    loss.backward()
+    assert torch.equal(densities.grad, torch.tensor([[1.0, 0, 1, 0], [1, 0, 0, 0]]) / 8)
+    # Samples whose colour was never evaluated (zeros) are not mistaken for a black background.
+    shaded = torch.ones(2, 4, dtype=torch.bool)
+    shaded[0, 2] = False
+    assert float(losses.occlusion_loss(densities, colors, 1, 3, shaded=shaded).detach()) == pytest.approx(6.0 / 8)

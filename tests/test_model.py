@@ -211,3 +211,36 @@ def test_masked_metrics_ignore_the_background():
     off[:, 32:] += 0.1
     off[:, :32] = 0.0
     assert abs(masked_psnr(off, image, mask) - 20.0) < 1e-3
+
+
+def test_loss_weight_schedule_decays_colour_tv_smoothness_and_grows_distortion():
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+
+    model = tiny_model(appearance_tv_weight=1.0, density_tv_weight=1.0, loss_weight_decay=0.01)
+    trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=10, steps_per_save=1000), base_dir=".")
+    attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)
+    before = [c for c in model.get_training_callbacks(attrs) if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION in c.where_to_run]
+    torch.manual_seed(0)
+    model.train()
+    outputs = model.get_outputs(ray_bundle(32))
+    start = {k: float(v) for k, v in model._regularizers(outputs).items()}
+    assert model._scale_weights() == [1.0, 10.0, 10.0]
+    for callback in before:
+        callback.run_callback_at_location(10, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+    assert model.loss_schedule_factor == pytest.approx(0.01)
+    end = {k: float(v) for k, v in model._regularizers(outputs).items()}
+    assert model._scale_weights() == pytest.approx([1.0, 0.1, 0.1])
+    assert end["tv_appearance"] == pytest.approx(0.01 * start["tv_appearance"], rel=1e-5)
+    assert end["tv_density"] == pytest.approx(0.01 * start["tv_density"], rel=1e-5)
+    assert end["distortion"] == pytest.approx(100 * start["distortion"], rel=1e-5)
+
+
+def test_occlusion_term_only_with_a_weight():
+    model = tiny_model(occlusion_weight=0.1)
+    model.train()
+    outputs = model.get_outputs(ray_bundle(32))
+    terms = model._regularizers(outputs)
+    assert float(terms["occlusion"]) > 0 and torch.isfinite(terms["occlusion"])
+    off = tiny_model()
+    off.train()
+    assert "occlusion" not in off._regularizers(off.get_outputs(ray_bundle(32)))

@@ -1,0 +1,317 @@
+"""Sparse depth from the few training views (paper Sec. 3.5, L_sd after DS-NeRF).
+
+The paper runs COLMAP on the training views only (all views would leak the test views' geometry). We do the
+same inside the pipeline with pycolmap, no COLMAP binary: SIFT features per training image, exhaustive
+matching (ratio test and cross-check), then triangulation with the known, fixed cameras. The geometry
+(tracks, DLT triangulation, reprojection and angle checks, the depth targets) is pure torch.
+
+Conventions are ``reprojection.py``'s: nerfstudio cameras (camera-to-world, OpenGL axes), pixel (u, v) from
+the top-left corner with pixel centres at i + 0.5 (COLMAP's keypoints use the same), depth = metric distance
+from the camera centre along the unit ray through the pixel.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+from frugalnerf_ns.reprojection import project_to_camera
+
+CACHE_VERSION = 1
+
+
+class SparseDepth(NamedTuple):
+    """Triangulated points and, per observation, the training pixel and the depth it should render."""
+
+    points: Float[Tensor, "points 3"]
+    """World positions of the points."""
+    view: Int[Tensor, "obs"]
+    """Training view of each observation."""
+    point: Int[Tensor, "obs"]
+    """Point of each observation."""
+    pixels: Float[Tensor, "obs 2"]
+    """(u, v) where the point projects in its view (exact, so the pixel's ray passes through the point)."""
+    depth: Float[Tensor, "obs"]
+    """Metric distance from the view's camera centre to the point."""
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass
+class TriangulationOptions:
+    """Which triangulated points are kept."""
+
+    max_reprojection_error: float = 1.5
+    """Largest reprojection error in pixels, in every view of the track."""
+    min_track_length: int = 2
+    """Fewest views a point is seen in."""
+    min_triangulation_angle: float = 0.5
+    """Smallest angle, in degrees, between two rays of the track (smaller: depth is ill-conditioned)."""
+    max_features: int = 8192
+    """SIFT features per image."""
+
+    def key(self) -> Dict[str, float]:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+# ---- geometry (pure torch) ----------------------------------------------------------------------------------
+def opencv_projection_matrices(
+    camera_to_worlds: Float[Tensor, "views 3 4"], intrinsics: Float[Tensor, "views 4"]
+) -> Float[Tensor, "views 3 4"]:
+    """P = K F [R^T | -R^T t] with F = diag(1, -1, -1): the OpenCV-style projection of an OpenGL camera,
+    so u = (P X)_0 / (P X)_2 agrees with ``reprojection.project_to_camera``."""
+    rotation, translation = camera_to_worlds[:, :3, :3], camera_to_worlds[:, :3, 3]
+    world_to_camera = torch.cat([rotation.transpose(1, 2), -(rotation.transpose(1, 2) @ translation[..., None])], dim=2)
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=world_to_camera.dtype, device=world_to_camera.device))
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    zeros, ones = torch.zeros_like(fx), torch.ones_like(fx)
+    k = torch.stack([fx, zeros, cx, zeros, fy, cy, zeros, zeros, ones], dim=-1).reshape(-1, 3, 3)
+    return k @ flip @ world_to_camera
+
+
+def triangulate_dlt(
+    projections: Float[Tensor, "views 3 4"], view: Int[Tensor, "points k"], pixels: Float[Tensor, "points k 2"]
+) -> Float[Tensor, "points 3"]:
+    """Linear (DLT) triangulation of points seen in k views each: the null vector of the stacked rows
+    u P_2 - P_0 and v P_2 - P_1, in double precision (the system is badly scaled in pixels)."""
+    p = projections.double()[view]  # points k 3 4
+    uv = pixels.double()
+    rows = torch.cat([uv[..., :1] * p[..., 2, :] - p[..., 0, :], uv[..., 1:] * p[..., 2, :] - p[..., 1, :]], dim=1)
+    # Normalise rows so every equation weighs alike whatever the pixel magnitudes.
+    rows = rows / rows.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    _, _, vh = torch.linalg.svd(rows)
+    homogeneous = vh[:, -1]
+    w = homogeneous[:, 3:]
+    # A point at infinity (w ~ 0) cannot be placed; it is returned as NaN and dropped by the caller.
+    w = torch.where(w.abs() < 1e-12, torch.full_like(w, float("nan")), w)
+    return (homogeneous[:, :3] / w).to(pixels.dtype)
+
+
+def triangulation_angles(
+    points: Float[Tensor, "points 3"], centers: Float[Tensor, "points k 3"]
+) -> Float[Tensor, "points"]:
+    """Largest angle (degrees) between the rays from a point to the centres of the cameras seeing it."""
+    rays = torch.nn.functional.normalize(centers - points[:, None], dim=-1)
+    cos = torch.einsum("pid,pjd->pij", rays, rays).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.arccos(cos.amin(dim=(1, 2))))
+
+
+def build_tracks(matches: Dict[Tuple[int, int], np.ndarray], num_features: Sequence[int]) -> List[List[Tuple[int, int]]]:
+    """Join pairwise matches into tracks (connected components of (view, feature) nodes). A track that
+    holds two features of one view is contradictory and dropped; so are tracks seen in fewer than 2 views."""
+    offsets = np.concatenate([[0], np.cumsum(num_features)])
+    parent = list(range(int(offsets[-1])))
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for (i, j), pairs in matches.items():
+        for a, b in np.asarray(pairs, dtype=np.int64).reshape(-1, 2):
+            ra, rb = find(int(offsets[i] + a)), find(int(offsets[j] + b))
+            if ra != rb:
+                parent[ra] = rb
+    groups: Dict[int, List[Tuple[int, int]]] = {}
+    matched = {int(offsets[i] + a) for (i, _), p in matches.items() for a in np.asarray(p).reshape(-1, 2)[:, 0]}
+    matched |= {int(offsets[j] + b) for (_, j), p in matches.items() for b in np.asarray(p).reshape(-1, 2)[:, 1]}
+    for node in sorted(matched):
+        view = int(np.searchsorted(offsets, node, side="right") - 1)
+        groups.setdefault(find(node), []).append((view, node - int(offsets[view])))
+    tracks = []
+    for track in groups.values():
+        views = [v for v, _ in track]
+        if len(track) >= 2 and len(set(views)) == len(views):
+            tracks.append(sorted(track))
+    return tracks
+
+
+def triangulate_tracks(
+    tracks: List[List[Tuple[int, int]]],
+    keypoints: Sequence[Float[Tensor, "features 2"]],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    options: TriangulationOptions,
+    depth_bounds: Optional[Tuple[float, float]] = None,
+) -> SparseDepth:
+    """Triangulate every track and keep the points in front of all their cameras, reprojecting within
+    ``max_reprojection_error`` pixels and seen under at least ``min_triangulation_angle`` degrees.
+
+    ``depth_bounds`` (near, far), when the scene has them (LLFF's come from COLMAP's own points), also drops
+    points whose depth along any observing camera's axis falls outside them: with two views a wrong match
+    anywhere on the epipolar line triangulates with zero reprojection error, and only the bounds catch it.
+    """
+    dtype = camera_to_worlds.dtype
+    projections = opencv_projection_matrices(camera_to_worlds, intrinsics)
+    centers = camera_to_worlds[:, :3, 3]
+    kept_points, views, point_ids, pixels, depths = [], [], [], [], []
+    by_length: Dict[int, List[List[Tuple[int, int]]]] = {}
+    for track in tracks:
+        if len(track) >= max(2, options.min_track_length):
+            by_length.setdefault(len(track), []).append(track)
+    count = 0
+    for length, group in sorted(by_length.items()):
+        view = torch.tensor([[v for v, _ in t] for t in group], dtype=torch.long)
+        observed = torch.stack([torch.stack([keypoints[v][f] for v, f in t]) for t in group]).to(dtype)
+        points = triangulate_dlt(projections, view, observed)
+        finite = torch.isfinite(points).all(dim=-1)
+        points = torch.where(finite[:, None], points, torch.zeros_like(points))
+        proj = project_to_camera(points[:, None].expand(-1, length, -1), camera_to_worlds[view], intrinsics[view])
+        error = (proj.pixels - observed).norm(dim=-1)
+        angle = triangulation_angles(points, centers[view])
+        keep = (
+            finite
+            & proj.in_front.all(dim=1)
+            & (error <= options.max_reprojection_error).all(dim=1)
+            & (angle >= options.min_triangulation_angle)
+        )
+        if depth_bounds is not None:
+            keep &= ((proj.depth >= depth_bounds[0]) & (proj.depth <= depth_bounds[1])).all(dim=1)
+        points, view, proj_pixels = points[keep], view[keep], proj.pixels[keep]
+        ids = torch.arange(count, count + points.shape[0])[:, None].expand(-1, length)
+        kept_points.append(points)
+        views.append(view.flatten())
+        point_ids.append(ids.flatten())
+        pixels.append(proj_pixels.reshape(-1, 2))
+        depths.append((points[:, None] - centers[view]).norm(dim=-1).flatten())
+        count += points.shape[0]
+    if not kept_points:
+        empty = torch.zeros(0, dtype=dtype)
+        return SparseDepth(empty.reshape(0, 3), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), empty.reshape(0, 2), empty)
+    return SparseDepth(torch.cat(kept_points), torch.cat(views), torch.cat(point_ids), torch.cat(pixels), torch.cat(depths))
+
+
+def inverse_depth_loss(rendered: Float[Tensor, "rays"], target: Float[Tensor, "rays"], min_depth: float = 1e-3) -> Tensor:
+    """L_sd (paper Eq. 11, DS-NeRF; reference code: MSE on inverse depth) between rendered and sparse metric
+    depths. Rendered depth is clamped at ``min_depth`` so an empty ray (depth ~0) cannot blow the loss up."""
+    if rendered.numel() == 0:
+        return rendered.sum() * 0.0
+    return torch.mean((1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2)
+
+
+# ---- pycolmap: features and matches ----------------------------------------------------------------------------
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as err:  # pragma: no cover - pycolmap is a dependency
+        raise ImportError("sparse depth needs pycolmap (pip install pycolmap)") from err
+    return pycolmap
+
+
+def extract_sift(images: Sequence[np.ndarray], max_features: int) -> Tuple[List[Tensor], List]:
+    """SIFT keypoints ((u, v) per feature) and pycolmap descriptors of uint8 grey or RGB images, on the CPU."""
+    pycolmap = _pycolmap()
+    options = pycolmap.FeatureExtractionOptions()
+    options.sift.max_num_features = int(max_features)
+    extractor = pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
+    keypoints, descriptors = [], []
+    for image in images:
+        grey = image if image.ndim == 2 else np.asarray(image[..., :3].astype(np.float32) @ [0.299, 0.587, 0.114])
+        kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(np.clip(grey, 0, 255).astype(np.uint8)))
+        keypoints.append(torch.tensor([[kp.x, kp.y] for kp in kps], dtype=torch.float64).reshape(-1, 2))
+        descriptors.append((kps, desc))
+    return keypoints, descriptors
+
+
+def match_all_pairs(descriptors: Sequence) -> Dict[Tuple[int, int], np.ndarray]:
+    """pycolmap's SIFT matcher (ratio test, cross-check) on every pair of views; no geometric verification
+    here: the known cameras check every match when its point is triangulated."""
+    pycolmap = _pycolmap()
+    matcher = pycolmap.FeatureMatcher.create(pycolmap.FeatureMatchingOptions(), pycolmap.Device.cpu)
+    matches = {}
+    for i in range(len(descriptors)):
+        for j in range(i + 1, len(descriptors)):
+            (kp_i, d_i), (kp_j, d_j) = descriptors[i], descriptors[j]
+            if len(kp_i) == 0 or len(kp_j) == 0:
+                continue
+            matches[(i, j)] = np.asarray(matcher.match(kp_i, d_i, kp_j, d_j), dtype=np.int64).reshape(-1, 2)
+    return matches
+
+
+def triangulate_training_views(
+    images: Sequence[np.ndarray],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    options: Optional[TriangulationOptions] = None,
+    depth_bounds: Optional[Tuple[float, float]] = None,
+) -> SparseDepth:
+    """Sparse points of the training views: SIFT, matching and triangulation with the fixed cameras."""
+    options = options or TriangulationOptions()
+    keypoints, descriptors = extract_sift(images, options.max_features)
+    matches = match_all_pairs(descriptors)
+    tracks = build_tracks(matches, [len(k) for k in keypoints])
+    return triangulate_tracks(tracks, keypoints, camera_to_worlds.double(), intrinsics.double(), options, depth_bounds)
+
+
+# ---- cache -------------------------------------------------------------------------------------------------
+def cache_key(
+    images: Sequence[np.ndarray],
+    camera_to_worlds: Tensor,
+    intrinsics: Tensor,
+    options: TriangulationOptions,
+    depth_bounds: Optional[Tuple[float, float]] = None,
+) -> str:
+    """Hash of everything the points depend on: pixels, cameras, options and depth bounds."""
+    digest = hashlib.sha256()
+    bounds = None if depth_bounds is None else [round(float(b), 6) for b in depth_bounds]
+    digest.update(json.dumps({"version": CACHE_VERSION, "bounds": bounds, **options.key()}, sort_keys=True).encode())
+    for image in images:
+        digest.update(str(image.shape).encode())
+        digest.update(np.ascontiguousarray(image).tobytes())
+    # Cameras are rounded so float noise between runs does not invalidate the cache.
+    digest.update(np.round(camera_to_worlds.double().cpu().numpy(), 6).tobytes())
+    digest.update(np.round(intrinsics.double().cpu().numpy(), 4).tobytes())
+    return digest.hexdigest()
+
+
+def save_sparse_depth(path: Path, sparse: SparseDepth, key: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(
+        tmp, key=np.array(key), points=sparse.points.double().numpy(), view=sparse.view.numpy(),
+        point=sparse.point.numpy(), pixels=sparse.pixels.double().numpy(), depth=sparse.depth.double().numpy(),
+    )
+    tmp.replace(path)  # atomic: an interrupted write never leaves a half file under the real name
+
+
+def load_sparse_depth(path: Path, key: str) -> Tuple[Optional[SparseDepth], str]:
+    """(points, "") from a cache file written for ``key``; (None, why) when it is missing, stale or corrupt."""
+    if not path.exists():
+        return None, "missing"
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if str(data["key"]) != key:
+                return None, "stale (training images, cameras or options changed)"
+            sparse = SparseDepth(
+                torch.from_numpy(data["points"]), torch.from_numpy(data["view"]).long(),
+                torch.from_numpy(data["point"]).long(), torch.from_numpy(data["pixels"]), torch.from_numpy(data["depth"]),
+            )
+    except Exception as err:  # noqa: BLE001 - any unreadable file is rebuilt, never used
+        return None, f"corrupt ({type(err).__name__}: {err})"
+    n = sparse.view.shape[0]
+    shapes_ok = sparse.points.ndim == 2 and sparse.points.shape[-1] == 3 and sparse.pixels.shape == (n, 2)
+    shapes_ok = shapes_ok and sparse.point.shape == (n,) and sparse.depth.shape == (n,)
+    if not shapes_ok or not all(torch.isfinite(t).all() for t in (sparse.points, sparse.pixels, sparse.depth)):
+        return None, "corrupt (inconsistent arrays)"
+    if n and (int(sparse.point.max()) >= sparse.points.shape[0] or bool((sparse.depth <= 0).any())):
+        return None, "corrupt (inconsistent arrays)"
+    return sparse, ""
+
+
+def cache_file_name(view_names: Sequence[str], width: int, height: int) -> str:
+    """Cache file of one training split and image size, e.g. ``sparse_depth_6-13_504x378.npz``."""
+    views = "-".join(Path(name).stem for name in view_names)
+    if len(views) > 80:  # many views: keep the name short, still unique
+        views = hashlib.sha1(views.encode()).hexdigest()[:12]
+    return f"sparse_depth_{views}_{width}x{height}.npz"

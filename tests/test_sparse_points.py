@@ -1,0 +1,207 @@
+"""Sparse depth: pycolmap SIFT + matching, torch triangulation with fixed cameras, cache, L_sd."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image, ImageFilter
+
+from frugalnerf_ns.procedural_scene import look_at
+from frugalnerf_ns.reprojection import project_to_camera
+from frugalnerf_ns.sparse_points import (
+    SparseDepth,
+    TriangulationOptions,
+    build_tracks,
+    cache_file_name,
+    cache_key,
+    inverse_depth_loss,
+    load_sparse_depth,
+    opencv_projection_matrices,
+    save_sparse_depth,
+    triangulate_dlt,
+    triangulate_tracks,
+    triangulate_training_views,
+)
+
+FERN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "llff" / "fern"
+WIDTH, HEIGHT, FOCAL = 320, 240, 300.0
+
+
+def camera(eye, target=(0.0, 0.0, 0.0)):
+    return look_at(torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64),
+                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))[:3].double()
+
+
+def intrinsics(n):
+    return torch.tensor([[FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2]], dtype=torch.float64).expand(n, 4)
+
+
+def texture(size=512, seed=0):
+    """Multi-scale random blobs about one texel per pixel: plenty of SIFT corners."""
+    rng = np.random.default_rng(seed)
+    tex = np.zeros((size, size), np.float32)
+    for radius in (2, 4, 8):
+        noise = Image.fromarray((rng.random((size, size)) * 255).astype(np.uint8)).filter(ImageFilter.GaussianBlur(radius))
+        tex += np.asarray(noise, np.float32)
+    tex -= tex.min()
+    return tex / tex.max()
+
+
+PLANE_Z = -1.0  # the textured plane z = PLANE_Z - 0.2 x (tilted), textured over x, y in [-2, 2]
+
+
+def render_plane(c2w, tex):
+    """Ray-cast the tilted textured plane into a uint8 image; returns the image."""
+    v, u = torch.meshgrid(torch.arange(HEIGHT, dtype=torch.float64) + 0.5, torch.arange(WIDTH, dtype=torch.float64) + 0.5, indexing="ij")
+    local = torch.stack([(u - WIDTH / 2) / FOCAL, -(v - HEIGHT / 2) / FOCAL, -torch.ones_like(u)], -1)
+    dirs = local @ c2w[:3, :3].T
+    origin = c2w[:3, 3]
+    # plane: z + 0.2 x = PLANE_Z  ->  t = (PLANE_Z - o_z - 0.2 o_x) / (d_z + 0.2 d_x)
+    t = (PLANE_Z - origin[2] - 0.2 * origin[0]) / (dirs[..., 2] + 0.2 * dirs[..., 0])
+    hit = origin + dirs * t[..., None]
+    size = tex.shape[0]
+    tx = ((hit[..., 0] + 2) / 4 * (size - 1)).clamp(0, size - 1).round().long()
+    ty = ((hit[..., 1] + 2) / 4 * (size - 1)).clamp(0, size - 1).round().long()
+    return (tex[ty.numpy(), tx.numpy()] * 255).astype(np.uint8)
+
+
+def test_opencv_projection_matrices_agree_with_project_to_camera():
+    c2w = torch.stack([camera((0.3, 0.2, 2.0)), camera((-0.4, 0.1, 2.5), (0.1, 0.0, 0.0))])
+    k = torch.tensor([[300.0, 310.0, 150.0, 120.0], [280.0, 290.0, 160.0, 110.0]], dtype=torch.float64)
+    points = torch.randn(20, 3, dtype=torch.float64) * 0.3
+    p = opencv_projection_matrices(c2w, k)
+    for view in range(2):
+        hom = torch.cat([points, torch.ones(20, 1, dtype=torch.float64)], -1) @ p[view].T
+        expected = project_to_camera(points, c2w[view].expand(20, 3, 4), k[view].expand(20, 4))
+        assert torch.allclose(hom[:, :2] / hom[:, 2:], expected.pixels, atol=1e-9)
+        assert torch.allclose(hom[:, 2], expected.depth, atol=1e-9)
+
+
+def test_dlt_recovers_points_exactly_and_matches_pycolmap():
+    pycolmap = pytest.importorskip("pycolmap")
+    c2w = torch.stack([camera((0.3, 0.2, 2.0)), camera((-0.4, 0.1, 2.5)), camera((0.0, -0.5, 2.2))])
+    k = intrinsics(3)
+    points = torch.randn(50, 3, dtype=torch.float64) * 0.3
+    view = torch.tensor([[0, 1, 2]]).expand(50, 3)
+    pixels = project_to_camera(points[:, None].expand(-1, 3, -1), c2w[view], k[view]).pixels
+    assert torch.allclose(triangulate_dlt(opencv_projection_matrices(c2w, k), view, pixels), points, atol=1e-7)
+    # Two views, against pycolmap's own triangulation (normalised image coordinates, OpenCV cameras).
+    p = opencv_projection_matrices(c2w, k)
+    kinv = torch.linalg.inv(p.new_tensor([[FOCAL, 0, WIDTH / 2], [0, FOCAL, HEIGHT / 2], [0, 0, 1]]))
+    cam_from_world = [(kinv @ p[i]).numpy() for i in (0, 1)]
+    normalised = [((kinv[:2, :2] @ pixels[0, i, :, None]) + kinv[:2, 2:]).numpy() for i in (0, 1)]
+    theirs = pycolmap.triangulate_point(cam_from_world[0], cam_from_world[1], normalised[0], normalised[1])
+    ours = triangulate_dlt(p, view[:1, :2], pixels[:1, :2])[0]
+    assert np.allclose(np.asarray(theirs).ravel(), ours.numpy(), atol=1e-6)
+
+
+def test_tracks_join_pairwise_matches_and_drop_contradictions():
+    matches = {
+        (0, 1): np.array([[0, 0], [2, 2]]),
+        (1, 2): np.array([[0, 5], [2, 3]]),
+        (0, 2): np.array([[0, 5], [2, 4]]),  # feature 2 of view 0 reaches features 3 and 4 of view 2
+    }
+    tracks = build_tracks(matches, [3, 3, 6])
+    assert tracks == [[(0, 0), (1, 0), (2, 5)]]
+
+
+def test_filters_drop_bad_points():
+    c2w = torch.stack([camera((0.2, 0.0, 2.0)), camera((-0.2, 0.0, 2.0))])
+    k = intrinsics(2)
+    good, behind, far_off = [0.0, 0.0, 0.0], [0.0, 0.0, 3.0], [0.1, 0.1, -0.5]
+    points = torch.tensor([good, behind, far_off], dtype=torch.float64)
+    # Exact projective images (a point behind the camera too), so DLT recovers each point as it is.
+    hom = torch.einsum("vij,pj->pvi", opencv_projection_matrices(c2w, k), torch.cat([points, torch.ones(3, 1, dtype=torch.float64)], -1))
+    pixels = hom[..., :2] / hom[..., 2:]
+    pixels[2, 1] += torch.tensor([0.0, 6.0], dtype=torch.float64)  # a wrong match off the epipolar line
+    keypoints = [pixels[:, 0], pixels[:, 1]]
+    tracks = [[(0, i), (1, i)] for i in range(3)]
+    options = TriangulationOptions(max_reprojection_error=1.0, min_triangulation_angle=0.5)
+    sparse = triangulate_tracks(tracks, keypoints, c2w, k, options)
+    # The point behind both cameras and the one that reprojects 3 px off are gone.
+    assert sparse.num_points == 1 and torch.allclose(sparse.points[0], points[0], atol=1e-6)
+    assert torch.allclose(sparse.depth, (points[0] - c2w[:, :3, 3]).norm(dim=-1), atol=1e-6)
+    # Depth bounds (near, far along the optical axis) and the triangulation angle also filter.
+    assert triangulate_tracks(tracks, keypoints, c2w, k, options, depth_bounds=(2.5, 10.0)).num_points == 0
+    wide = TriangulationOptions(max_reprojection_error=1.0, min_triangulation_angle=30.0)  # the pair sees it at ~11.4 deg
+    assert triangulate_tracks(tracks, keypoints, c2w, k, wide).num_points == 0
+
+
+def test_sift_triangulation_on_a_textured_plane_recovers_its_depth():
+    tex = texture()
+    c2w = torch.stack([camera((0.25, 0.1, 2.0)), camera((-0.25, -0.05, 2.1))])
+    images = [render_plane(c, tex) for c in c2w]
+    sparse = triangulate_training_views(images, c2w, intrinsics(2), TriangulationOptions(max_reprojection_error=1.0))
+    assert sparse.num_points >= 500
+    true_z = PLANE_Z - 0.2 * sparse.points[:, 0]
+    # Relative depth error of each point along the first camera's axis: median below 0.5 %, 95 % below 2 %.
+    depth = project_to_camera(sparse.points, c2w[0].expand(sparse.num_points, 3, 4), intrinsics(sparse.num_points)).depth
+    rel = (sparse.points[:, 2] - true_z).abs() / depth
+    assert float(rel.median()) < 0.005 and float(rel.quantile(0.95)) < 0.02
+    # Every observation's pixel ray passes through its point at the stored distance.
+    proj = project_to_camera(sparse.points[sparse.point], c2w[sparse.view], intrinsics(len(sparse.view)))
+    assert torch.allclose(proj.pixels, sparse.pixels, atol=1e-6)
+
+
+def test_inverse_depth_loss_value_gradient_and_empty():
+    rendered = torch.tensor([2.0, 4.0, 0.0], requires_grad=True)
+    target = torch.tensor([2.0, 2.0, 1.0])
+    loss = inverse_depth_loss(rendered, target)
+    expected = ((0.0) ** 2 + (0.25 - 0.5) ** 2 + (1 / 1e-3 - 1.0) ** 2) / 3
+    assert float(loss.detach()) == pytest.approx(expected, rel=1e-5)
+    loss.backward()
+    assert torch.isfinite(rendered.grad).all()
+    # Too far (4 > 2): gradient descent brings the rendered depth closer.
+    assert rendered.grad[1] > 0 and rendered.grad[0] == 0
+    assert float(inverse_depth_loss(torch.zeros(0), torch.zeros(0))) == 0.0
+
+
+def _sparse(n=4):
+    return SparseDepth(torch.rand(n, 3).double(), torch.zeros(n).long(), torch.arange(n), torch.rand(n, 2).double(), torch.rand(n).double() + 1)
+
+
+def test_cache_round_trip_stale_and_corrupt(tmp_path):
+    path = tmp_path / cache_file_name(["images/image006.png", "images/image013.png"], 504, 378)
+    assert path.name == "sparse_depth_image006-image013_504x378.npz"
+    assert load_sparse_depth(path, "k")[1] == "missing"
+    sparse = _sparse()
+    save_sparse_depth(path, sparse, "k")
+    loaded, why = load_sparse_depth(path, "k")
+    assert why == "" and all(torch.equal(a, b) for a, b in zip(loaded, sparse))
+    assert load_sparse_depth(path, "other")[0] is None and "stale" in load_sparse_depth(path, "other")[1]
+    path.write_bytes(b"not a numpy archive")
+    assert load_sparse_depth(path, "k")[0] is None and "corrupt" in load_sparse_depth(path, "k")[1]
+    broken = _sparse()._replace(point=torch.tensor([0, 1, 2, 9]))  # a point index past the points
+    save_sparse_depth(path, broken, "k")
+    assert "corrupt" in load_sparse_depth(path, "k")[1]
+
+
+def test_cache_key_follows_images_cameras_options_and_bounds():
+    images = [np.zeros((4, 5, 3), np.uint8), np.ones((4, 5, 3), np.uint8)]
+    c2w, k, opts = torch.eye(4)[:3].expand(2, 3, 4), intrinsics(2), TriangulationOptions()
+    base = cache_key(images, c2w, k, opts)
+    assert base == cache_key([i.copy() for i in images], c2w.clone(), k.clone(), TriangulationOptions())
+    changed = [images[0], images[1].copy()]
+    changed[1][0, 0, 0] = 9
+    assert cache_key(changed, c2w, k, opts) != base
+    assert cache_key(images, c2w + 0.01, k, opts) != base
+    assert cache_key(images, c2w, k, TriangulationOptions(max_reprojection_error=3.0)) != base
+    assert cache_key(images, c2w, k, opts, (1.0, 5.0)) != base
+
+
+@pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
+def test_fern_two_views_give_plausible_points_inside_the_llff_bounds():
+    from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
+
+    outputs = LLFFDataParserConfig(data=FERN, downscale_factor=8, train_views=(6, 13)).setup().get_dataparser_outputs("train")
+    cams = outputs.cameras
+    images = [np.asarray(Image.open(f).convert("RGB")) for f in outputs.image_filenames]
+    k = torch.stack([cams.fx[:, 0], cams.fy[:, 0], cams.cx[:, 0], cams.cy[:, 0]], -1).double()
+    sparse = triangulate_training_views(images, cams.camera_to_worlds.double(), k)
+    near, far = outputs.metadata["near_far"]
+    assert 100 <= sparse.num_points <= 5000
+    # Without the bounds as a filter, nearly all points already lie inside them (COLMAP's own bounds).
+    depth = project_to_camera(sparse.points[sparse.point], cams.camera_to_worlds.double()[sparse.view], k[sparse.view]).depth
+    inside = ((depth >= near) & (depth <= far)).double().mean()
+    assert float(inside) >= 0.95
