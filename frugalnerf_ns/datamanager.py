@@ -106,6 +106,8 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     monocular depth loss L_d (--pipeline.model.mono-depth-weight); nothing is downloaded. None: off."""
     mono_depth_is_disparity: bool = True
     """The depth model predicts relative inverse depth (DPT and Depth-Anything do)."""
+    mono_depth_input_size: int = 384
+    """Square input size of the depth model (DPT 384, Depth-Anything 518)."""
 
 
 NOVEL_PATCH = 2  # novel-view rays come in 2x2 patches for the depth smoothness loss
@@ -175,7 +177,9 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         folder = self.config.sparse_cache_dir or Path(self.config.dataparser.data) / "frugalnerf_cache"
         names = [str(f) for f in self.train_dataparser_outputs.image_filenames]
         cache = folder / cache_file_name(names, width, height).replace("sparse_depth_", "mono_depth_")
-        depth = load_or_predict(model_path, self.warp_images, cache, self.config.mono_depth_is_disparity)
+        depth = load_or_predict(
+            model_path, self.warp_images, cache, self.config.mono_depth_is_disparity, self.config.mono_depth_input_size
+        )
         CONSOLE.print(f"frugalnerf: monocular depth of {len(depth)} training views from {model_path} (L_d).")
         return depth.to(self.device)
 

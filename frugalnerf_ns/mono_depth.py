@@ -30,7 +30,7 @@ def pearson_depth_loss(rendered: Float[Tensor, "rays"], predicted: Float[Tensor,
     x = rendered - rendered.mean()
     y = predicted - predicted.mean()
     denom = torch.sqrt((x * x).sum() * (y * y).sum())
-    if float(denom) <= eps:
+    if float(denom.detach()) <= eps:
         return rendered.sum() * 0.0
     return 1.0 - (x * y).sum() / denom
 
@@ -84,10 +84,11 @@ def predict_depth(model, images: Float[Tensor, "views height width 3"], input_si
     return torch.stack(predictions)
 
 
-def mono_depth_key(model_path: Path, images: Sequence[np.ndarray], disparity: bool) -> str:
+def mono_depth_key(model_path: Path, images: Sequence[np.ndarray], disparity: bool, input_size: int) -> str:
+    """Hash of the model folder (names, sizes, times), the settings and the images' pixels."""
     digest = hashlib.sha256()
     digest.update(str(Path(model_path).resolve()).encode())
-    digest.update(str(disparity).encode())
+    digest.update(f"{disparity} {input_size}".encode())
     for name in sorted(Path(model_path).glob("*")):
         if name.is_file():
             digest.update(name.name.encode())
@@ -98,13 +99,17 @@ def mono_depth_key(model_path: Path, images: Sequence[np.ndarray], disparity: bo
 
 
 def load_or_predict(
-    model_path: Path, images: Float[Tensor, "views height width 3"], cache: Optional[Path], disparity: bool
+    model_path: Path,
+    images: Float[Tensor, "views height width 3"],
+    cache: Optional[Path],
+    disparity: bool,
+    input_size: int = 384,
 ) -> Float[Tensor, "views height width"]:
     """Predicted depth of the training images, from ``cache`` when it was made by the same model on the same
     images; disparity predictions (DPT, Depth-Anything) are turned into depth-like values by negation, which
     keeps Pearson correlation meaningful without dividing by near-zero disparities."""
     arrays = [np.round(image.cpu().numpy() * 255).astype(np.uint8) for image in images]
-    key = mono_depth_key(model_path, arrays, disparity)
+    key = mono_depth_key(model_path, arrays, disparity, input_size)
     if cache is not None and cache.exists():
         try:
             with np.load(cache, allow_pickle=False) as data:
@@ -112,7 +117,7 @@ def load_or_predict(
                     return torch.from_numpy(data["depth"]).float()
         except Exception:  # noqa: BLE001 - unreadable cache: predict again
             pass
-    depth = predict_depth(load_depth_model(model_path), images.cpu())
+    depth = predict_depth(load_depth_model(model_path), images.cpu(), input_size)
     if disparity:
         depth = -depth
     if cache is not None:

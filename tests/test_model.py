@@ -244,3 +244,11 @@ def test_occlusion_term_only_with_a_weight():
     off = tiny_model()
     off.train()
     assert "occlusion" not in off._regularizers(off.get_outputs(ray_bundle(32)))
+
+
+def test_regularisers_vanish_when_their_weights_are_zero():
+    model = tiny_model(
+        appearance_tv_weight=0.0, density_tv_weight=0.0, density_l1_weight=0.0, distortion_weight=0.0, occlusion_weight=0.0
+    )
+    model.train()
+    assert model._regularizers(model.get_outputs(ray_bundle(16))) == {}
