@@ -39,6 +39,7 @@ from frugalnerf_ns.sparse_points import (
     cache_file_name,
     cache_key,
     load_sparse_depth,
+    points_inside_box,
     save_sparse_depth,
     triangulate_training_views,
 )
@@ -205,6 +206,11 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
                 save_sparse_depth(path, sparse, key)
             except OSError as err:
                 CONSOLE.print(f"frugalnerf: could not cache sparse points in {path} ({err}); they stay in memory.")
+        metadata = self.train_dataparser_outputs.metadata or {}
+        if metadata.get("ndc") is None:
+            # A metric box (object scenes): points outside it are background mismatches. (NDC boxes are not
+            # in world units; forward-facing scenes filter with their near/far bounds instead.)
+            sparse = points_inside_box(sparse, self.train_dataparser_outputs.scene_box.aabb)
         if sparse.num_points < self.config.min_sparse_points:
             CONSOLE.print(
                 f"[bold yellow]frugalnerf: triangulating the training views found {sparse.num_points} points "

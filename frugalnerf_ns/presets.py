@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import sys
 from importlib import resources
 from typing import Any, Dict, Mapping, Tuple
 
@@ -57,6 +58,10 @@ def resolved_overrides(name: str, table: Mapping[str, Mapping[str, Any]]) -> Dic
     return merged
 
 
+def _interactive() -> bool:
+    return sys.stdin is not None and sys.stdin.isatty()
+
+
 def base_trainer_config(method_name: str) -> TrainerConfig:
     """The shape of every FrugalNeRF run; the numbers come from the presets."""
     return TrainerConfig(
@@ -75,7 +80,9 @@ def base_trainer_config(method_name: str) -> TrainerConfig:
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
             },
         },
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 14),
+        # Without a terminal (CI, nohup, a job queue) nobody can press ctrl+c, so the viewer must not keep
+        # the process alive after training; interactive runs keep nerfstudio's behaviour.
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 14, quit_on_train_completion=not _interactive()),
         vis="viewer",
         # nerfstudio defaults to CUDA and fails on a CPU-only machine; default to what this machine has.
         machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),

@@ -192,6 +192,18 @@ def triangulate_tracks(
     return SparseDepth(torch.cat(kept_points), torch.cat(views), torch.cat(point_ids), torch.cat(pixels), torch.cat(depths))
 
 
+def points_inside_box(sparse: SparseDepth, aabb: Float[Tensor, "2 3"]) -> SparseDepth:
+    """Only the observations of points inside the scene box (the field cannot render depth outside it; in
+    object scenes a point outside is a wrong match on the background). Point indices are renumbered."""
+    lo, hi = aabb[0].to(sparse.points), aabb[1].to(sparse.points)
+    inside = ((sparse.points >= lo) & (sparse.points <= hi)).all(dim=-1)
+    new_index = torch.cumsum(inside.long(), 0) - 1
+    keep = inside[sparse.point]
+    return SparseDepth(
+        sparse.points[inside], sparse.view[keep], new_index[sparse.point[keep]], sparse.pixels[keep], sparse.depth[keep]
+    )
+
+
 def inverse_depth_loss(rendered: Float[Tensor, "rays"], target: Float[Tensor, "rays"], min_depth: float = 1e-3) -> Tensor:
     """L_sd (paper Eq. 11, DS-NeRF; reference code: MSE on inverse depth) between rendered and sparse metric
     depths. Rendered depth is clamped at ``min_depth`` so an empty ray (depth ~0) cannot blow the loss up."""

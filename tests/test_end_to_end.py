@@ -8,18 +8,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from frugalnerf_ns.demo import train_and_eval
 from frugalnerf_ns.procedural_scene import constant_color_psnr
 
 # The tiny preset must beat predicting the best constant colour by at least this much on the test views.
 PSNR_MARGIN_DB = 6.0
-
-
-@pytest.fixture(scope="module")
-def trained_run(procedural_scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("outputs")
-    results = train_and_eval(procedural_scene, out)
-    return results, Path(results["run_dir"])
 
 
 def test_trained_model_clearly_beats_a_constant_colour(trained_run, procedural_scene):

@@ -205,3 +205,17 @@ def test_fern_two_views_give_plausible_points_inside_the_llff_bounds():
     depth = project_to_camera(sparse.points[sparse.point], cams.camera_to_worlds.double()[sparse.view], k[sparse.view]).depth
     inside = ((depth >= near) & (depth <= far)).double().mean()
     assert float(inside) >= 0.95
+
+
+def test_points_outside_the_scene_box_are_dropped_with_their_observations():
+    from frugalnerf_ns.sparse_points import points_inside_box
+
+    points = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.5, -0.5, 0.9]], dtype=torch.float64)
+    sparse = SparseDepth(
+        points, torch.tensor([0, 1, 0, 1, 0, 1]), torch.tensor([0, 0, 1, 1, 2, 2]),
+        torch.arange(12, dtype=torch.float64).reshape(6, 2), torch.arange(1, 7, dtype=torch.float64),
+    )
+    kept = points_inside_box(sparse, torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    assert kept.num_points == 2 and torch.equal(kept.points, points[[0, 2]])
+    assert kept.point.tolist() == [0, 0, 1, 1] and kept.depth.tolist() == [1, 2, 5, 6]
+    assert torch.equal(kept.pixels, sparse.pixels[[0, 1, 4, 5]])

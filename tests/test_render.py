@@ -1,0 +1,96 @@
+"""nerfstudio's render tools on a trained FrugalNeRF run: ns-render spiral / interpolate / dataset and the
+one-line spiral script, with no ffmpeg on the system PATH."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+BIN = Path(sys.executable).parent
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def no_system_ffmpeg_env():
+    """PATH without the venv's bin (whose ffmpeg link setup_venv.sh may have made) or any system ffmpeg."""
+    return {**os.environ, "PATH": "/usr/bin:/bin", "PYTHONWARNINGS": "ignore"}
+
+
+def run(cmd, timeout=600):
+    result = subprocess.run([str(c) for c in cmd], capture_output=True, text=True, timeout=timeout, env=no_system_ffmpeg_env())
+    assert result.returncode == 0, (result.stdout[-2000:], result.stderr[-3000:])
+    return result
+
+
+def video_frames(path):
+    """(frame count, width, height) read back from the file."""
+    import av
+
+    with av.open(str(path)) as container:
+        frames = [frame for frame in container.decode(video=0)]
+    return len(frames), frames[0].width, frames[0].height
+
+
+def camera_size(scene):
+    transforms = json.loads((scene / "transforms.json").read_text())
+    return int(transforms["w"]), int(transforms["h"])
+
+
+@pytest.mark.skipif(Path("/usr/bin/ffmpeg").exists() or Path("/bin/ffmpeg").exists(), reason="system has an ffmpeg")
+def test_spiral_and_interpolate_videos_without_a_system_ffmpeg(trained_run, procedural_scene, tmp_path):
+    _, run_dir = trained_run
+    config = run_dir / "config.yml"
+    width, height = camera_size(procedural_scene)
+    spiral = tmp_path / "spiral.mp4"
+    run([BIN / "ns-render", "spiral", "--load-config", config, "--output-path", spiral, "--seconds", "1", "--frame-rate", "6"])
+    assert video_frames(spiral) == (6, width, height)
+    depth = tmp_path / "interp-depth.mp4"
+    run([
+        BIN / "ns-render", "interpolate", "--load-config", config, "--output-path", depth, "--interpolation-steps", "4",
+        "--frame-rate", "8", "--rendered-output-names", "depth",
+    ])
+    # Two evaluation cameras: one transition of 4 steps.
+    count, w, h = video_frames(depth)
+    assert (count, w, h) == (4, width, height)
+
+
+def test_render_spiral_script_prints_where_the_video_is(trained_run, procedural_scene, tmp_path):
+    _, run_dir = trained_run
+    out = tmp_path / "one-line.mp4"
+    result = run([sys.executable, ROOT / "scripts" / "render_spiral.py", run_dir / "config.yml", "--output", out, "--seconds", "0.5", "--frame-rate", "8"])
+    assert f"wrote {out.resolve()}" in result.stdout
+    width, height = camera_size(procedural_scene)
+    assert video_frames(out) == (4, width, height)
+
+
+def test_render_spiral_script_rejects_a_missing_config(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "render_spiral.py"), str(tmp_path / "nope.yml")], capture_output=True, text=True
+    )
+    assert result.returncode != 0 and "is not a file" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_dataset_render_matches_ns_eval_psnr(trained_run, tmp_path):
+    results, run_dir = trained_run
+    out = tmp_path / "dataset"
+    run([
+        BIN / "ns-render", "dataset", "--load-config", run_dir / "config.yml", "--output-path", out, "--split", "test",
+        "--rendered-output-names", "rgb", "gt-rgb", "--image-format", "png",
+    ])
+    rendered = sorted((out / "test" / "rgb").rglob("*.png"))
+    truth = sorted((out / "test" / "gt-rgb").rglob("*.png"))
+    assert len(rendered) == len(truth) >= 2
+
+    def load(path):
+        image = np.asarray(Image.open(path), dtype=np.float64) / 255.0
+        if image.shape[-1] == 4:  # composited on white, as the model's metrics do
+            image = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])
+        return image
+
+    psnrs = [-10 * np.log10(np.mean((load(r) - load(t)) ** 2)) for r, t in zip(rendered, truth)]
+    # 8-bit files against ns-eval's float images: the same numbers up to quantisation.
+    assert np.mean(psnrs) == pytest.approx(results["psnr"], abs=0.2)
