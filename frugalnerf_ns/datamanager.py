@@ -157,6 +157,9 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
                 "without it (colour loss and regularisers only)."
             )
         self.train_ray_generator = RayGenerator(cameras.to(self.device))
+        # Not used for sampling (patches are), but nerfstudio's tools set the batch size through it
+        # (ns-export pointcloud sets train_pixel_sampler.num_rays_per_batch), so next_train honours it.
+        self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, self.config.train_num_rays_per_batch)
         self.generator = torch.Generator().manual_seed(self.config.seed)
         if self.config.novel_views and self.config.num_novel_rays_per_batch > 0:
             self.novel_cameras = self._spiral_cameras(cameras)
@@ -267,7 +270,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         self.train_count += 1
         k = self.config.patch_size
         num_views, height, width = self.train_images.shape[:3]
-        num_patches = max(1, self.config.train_num_rays_per_batch // (k * k))
+        num_patches = max(1, self._train_rays_per_batch() // (k * k))
         indices = self._sample_patches(num_patches, num_views, height, width, k)
         indices_dev = indices.to(self.device)
         bundle = self.train_ray_generator(indices_dev)
@@ -304,9 +307,13 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             batch["sparse_depth"] = depth
         return bundle, batch
 
+    def _train_rays_per_batch(self) -> int:
+        sampler = getattr(self, "train_pixel_sampler", None)
+        return sampler.num_rays_per_batch if sampler is not None else self.config.train_num_rays_per_batch
+
     def get_train_rays_per_batch(self) -> int:
         k = self.config.patch_size
-        return max(1, self.config.train_num_rays_per_batch // (k * k)) * k * k
+        return max(1, self._train_rays_per_batch() // (k * k)) * k * k
 
 
 def concatenate_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:

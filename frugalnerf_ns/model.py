@@ -476,6 +476,11 @@ class FrugalNeRFModel(Model):
         outputs["geo_adaptation"] = result  # type: ignore[assignment]
         return result
 
+    def get_rgba_image(self, outputs: Dict[str, Tensor], output_name: str = "rgb") -> Tensor:
+        """RGB with the accumulation as alpha (ns-export and ns-render's rgba; nerfstudio's default reads a
+        renderer module this model does not have)."""
+        return torch.cat([outputs[output_name], outputs[output_name.replace("rgb", "accumulation")]], dim=-1)
+
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:

@@ -94,3 +94,19 @@ def test_dataset_render_matches_ns_eval_psnr(trained_run, tmp_path):
     psnrs = [-10 * np.log10(np.mean((load(r) - load(t)) ** 2)) for r, t in zip(rendered, truth)]
     # 8-bit files against ns-eval's float images: the same numbers up to quantisation.
     assert np.mean(psnrs) == pytest.approx(results["psnr"], abs=0.2)
+
+
+def test_ns_export_pointcloud_writes_a_ply(trained_run, tmp_path):
+    _, run_dir = trained_run
+    out = tmp_path / "pc"
+    result = subprocess.run(
+        [str(BIN / "ns-export"), "pointcloud", "--load-config", str(run_dir / "config.yml"), "--output-dir", str(out),
+         "--num-points", "2000", "--normal-method", "open3d"],
+        capture_output=True, text=True, timeout=600,
+    )
+    if "libusb" in result.stderr:
+        pytest.fail("open3d cannot load libusb-1.0.so.0: scripts/setup_venv.sh should have provided it")
+    assert result.returncode == 0, result.stderr[-3000:]
+    header = (out / "point_cloud.ply").read_bytes()[:400].split(b"end_header")[0].decode()
+    vertices = int(header.split("element vertex ")[1].split()[0])
+    assert vertices >= 1000 and "property uchar red" in header
