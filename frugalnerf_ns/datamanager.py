@@ -25,6 +25,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.data.pixel_samplers import PixelSamplerConfig
 from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
@@ -159,7 +160,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         self.train_ray_generator = RayGenerator(cameras.to(self.device))
         # Not used for sampling (patches are), but nerfstudio's tools set the batch size through it
         # (ns-export pointcloud sets train_pixel_sampler.num_rays_per_batch), so next_train honours it.
-        self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, self.config.train_num_rays_per_batch)
+        self.train_pixel_sampler = PixelSamplerConfig(num_rays_per_batch=self.config.train_num_rays_per_batch).setup()
         self.generator = torch.Generator().manual_seed(self.config.seed)
         if self.config.novel_views and self.config.num_novel_rays_per_batch > 0:
             self.novel_cameras = self._spiral_cameras(cameras)

@@ -91,7 +91,14 @@ def test_novel_views_can_be_turned_off(procedural_scene):
     assert "novel_indices" not in batch and bundle.origins.shape[0] == batch["num_train_rays"]
 
 
-def test_sparse_rays_follow_the_novel_rays_and_pass_through_their_points(procedural_scene, tmp_path):
+@pytest.fixture
+def keep_points_outside_the_box(monkeypatch):
+    """The procedural scene's few SIFT points lie on its backdrop, outside the scene box, which the
+    datamanager drops (tested in test_sparse_points); keep them here to test the rays."""
+    monkeypatch.setattr("frugalnerf_ns.datamanager.points_inside_box", lambda sparse, aabb: sparse)
+
+
+def test_sparse_rays_follow_the_novel_rays_and_pass_through_their_points(procedural_scene, tmp_path, keep_points_outside_the_box):
     manager = manager_for(procedural_scene, min_sparse_points=1, num_sparse_rays_per_batch=3, sparse_cache_dir=tmp_path)
     sparse = manager.sparse
     assert sparse is not None and sparse.num_points >= 1
@@ -107,7 +114,7 @@ def test_sparse_rays_follow_the_novel_rays_and_pass_through_their_points(procedu
     assert len(list(tmp_path.glob("sparse_depth_*.npz"))) == 1
 
 
-def test_sparse_cache_is_reused_and_a_corrupt_one_rebuilt(procedural_scene, tmp_path, capsys):
+def test_sparse_cache_is_reused_and_a_corrupt_one_rebuilt(procedural_scene, tmp_path, capsys, keep_points_outside_the_box):
     first = manager_for(procedural_scene, min_sparse_points=1, sparse_cache_dir=tmp_path)
     (path,) = tmp_path.glob("sparse_depth_*.npz")
     stamp = path.stat().st_mtime_ns

@@ -12,11 +12,14 @@ from tests.test_datamanager import manager_for
 
 @pytest.fixture(scope="module")
 def model_and_batch(procedural_scene, tmp_path_factory):
-    # The procedural scene triangulates only a few points: let them all count, so the batch has sparse rays.
-    manager = manager_for(
-        procedural_scene, train_num_rays_per_batch=225, num_novel_rays_per_batch=64, patch_size=5,
-        min_sparse_points=1, sparse_cache_dir=tmp_path_factory.mktemp("sparse"),
-    )
+    # The procedural scene triangulates only a few points, on its backdrop outside the scene box: let them
+    # all count, so the batch has sparse rays.
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("frugalnerf_ns.datamanager.points_inside_box", lambda sparse, aabb: sparse)
+        manager = manager_for(
+            procedural_scene, train_num_rays_per_batch=225, num_novel_rays_per_batch=64, patch_size=5,
+            min_sparse_points=1, sparse_cache_dir=tmp_path_factory.mktemp("sparse"),
+        )
     config = FrugalNeRFModelConfig(
         initial_voxels=24**3, final_voxels=24**3, upsample_iters=(), alpha_mask_iters=(),
         density_components=(4, 2, 2), appearance_components=(8, 2, 2), mlp_hidden_dim=16, background="white",

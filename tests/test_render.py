@@ -110,3 +110,27 @@ def test_ns_export_pointcloud_writes_a_ply(trained_run, tmp_path):
     header = (out / "point_cloud.ply").read_bytes()[:400].split(b"end_header")[0].decode()
     vertices = int(header.split("element vertex ")[1].split()[0])
     assert vertices >= 1000 and "property uchar red" in header
+
+
+def test_camera_path_render_of_a_viewer_style_path(trained_run, procedural_scene, tmp_path):
+    """A camera path in the format the viewer saves (4x4 camera-to-world rows, vertical fov in degrees)."""
+    import torch
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, run_dir = trained_run
+    _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")
+    poses = pipeline.datamanager.train_dataset.cameras.camera_to_worlds[:2]
+    frames = []
+    for t in torch.linspace(0.0, 1.0, 5):
+        c2w = torch.eye(4)
+        c2w[:3] = poses[0] * (1 - t) + poses[1] * t  # positions blend; rotations stay near-orthonormal here
+        frames.append({"camera_to_world": c2w.flatten().tolist(), "fov": 50.0, "aspect": 4 / 3})
+    path = tmp_path / "camera_path.json"
+    path.write_text(json.dumps({
+        "camera_type": "perspective", "render_height": 48, "render_width": 64, "fps": 5, "seconds": 1.0,
+        "camera_path": frames,
+    }))
+    video = tmp_path / "path.mp4"
+    run([BIN / "ns-render", "camera-path", "--load-config", run_dir / "config.yml", "--camera-path-filename", path,
+         "--output-path", video])
+    assert video_frames(video) == (5, 64, 48)
