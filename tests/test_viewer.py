@@ -85,3 +85,16 @@ def test_viewer_serves_the_page_and_renders_a_frame_for_a_websocket_client(train
             process.kill()
             process.wait(timeout=30)
     assert process.returncode is not None
+
+
+def test_training_with_the_viewer_exits_when_run_without_a_terminal(procedural_scene, tmp_path):
+    """ns-train's default viewer waits for ctrl+c after training; with no terminal attached it must not."""
+    port = free_port()
+    result = subprocess.run(
+        [str(BIN / "ns-train"), "frugalnerf-tiny", "--data", str(procedural_scene), "--output-dir", str(tmp_path),
+         "--vis", "viewer", "--viewer.websocket-port", str(port), "--viewer.websocket-host", "127.0.0.1",
+         "--max-num-iterations", "3"],
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert list(tmp_path.rglob("step-*.ckpt"))
