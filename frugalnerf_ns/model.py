@@ -380,6 +380,7 @@ class FrugalNeRFModel(Model):
         for scale in range(self.field.num_scales):
             stride = self.field.stride(scale)
             factor = 1.0 / stride**2
+            suffix = scale_suffix(scale)
             density_planes, density_lines = self.field.density_grid.scale_views(stride)
             app_planes, app_lines = self.field.appearance_grid.scale_views(stride)
             if cfg.appearance_tv_weight > 0:
@@ -393,11 +394,9 @@ class FrugalNeRFModel(Model):
             if cfg.density_l1_weight > 0:
                 add("l1_density", cfg.density_l1_weight * factor * losses.density_l1_loss(density_planes, density_lines))
             if cfg.distortion_weight > 0:
-                suffix = scale_suffix(scale)
                 step = self.field.sample_step(scale, cfg.step_ratio)
                 dist = losses.distortion_loss(outputs[f"weights{suffix}"], outputs[f"t{suffix}"], step)
                 add("distortion", cfg.distortion_weight / decay * factor * dist)
-            suffix = scale_suffix(scale)
             if cfg.occlusion_weight > 0 and f"densities{suffix}" in outputs:
                 # Lower scales take proportionally fewer samples: the same distance from the camera.
                 occ = losses.occlusion_loss(
