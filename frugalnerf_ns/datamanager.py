@@ -176,12 +176,17 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         if self.test_mode == "val" and model_path is not None:
             self.mono_depth = self._mono_depth(Path(model_path))
 
-    def _mono_depth(self, model_path: Path) -> Tensor:
-        """The depth model's predictions for the training images, cached next to the data."""
+    def _cache_path(self, kind: str) -> Path:
+        """Cache file for this training split and image size, in frugalnerf_cache next to the data (or
+        --pipeline.datamanager.sparse-cache-dir)."""
         height, width = self.warp_images.shape[1:3]
         folder = self.config.sparse_cache_dir or Path(self.config.dataparser.data) / "frugalnerf_cache"
         names = [str(f) for f in self.train_dataparser_outputs.image_filenames]
-        cache = folder / cache_file_name(names, width, height).replace("sparse_depth_", "mono_depth_")
+        return folder / cache_file_name(names, width, height, kind)
+
+    def _mono_depth(self, model_path: Path) -> Tensor:
+        """The depth model's predictions for the training images, cached next to the data."""
+        cache = self._cache_path("mono_depth")
         depth = load_or_predict(
             model_path, self.warp_images, cache, self.config.mono_depth_is_disparity, self.config.mono_depth_input_size
         )
@@ -192,15 +197,13 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         """Triangulated points of the training views, from the cache when it matches; None when too few."""
         images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in self.warp_images]
         c2w = cameras.camera_to_worlds.double()
-        intrinsics = torch.stack([cameras.fx[:, 0], cameras.fy[:, 0], cameras.cx[:, 0], cameras.cy[:, 0]], -1).double()
+        intrinsics = self.warp_intrinsics.double().cpu()
         near_far = (self.train_dataparser_outputs.metadata or {}).get("near_far")
         bounds = None if near_far is None else (float(near_far[0]), float(near_far[1]))
         # Configs saved before this option existed load without it (nerfstudio rebuilds them from YAML).
         options = getattr(self.config, "triangulation", None) or TriangulationOptions()
         key = cache_key(images, c2w, intrinsics, options, bounds)
-        height, width = images[0].shape[:2]
-        folder = self.config.sparse_cache_dir or Path(self.config.dataparser.data) / "frugalnerf_cache"
-        path = folder / cache_file_name([str(f) for f in self.train_dataparser_outputs.image_filenames], width, height)
+        path = self._cache_path("sparse_depth")
         sparse, why = load_sparse_depth(path, key)
         if sparse is None:
             if why != "missing":

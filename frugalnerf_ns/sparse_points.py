@@ -321,9 +321,10 @@ def load_sparse_depth(path: Path, key: str) -> Tuple[Optional[SparseDepth], str]
     return sparse, ""
 
 
-def cache_file_name(view_names: Sequence[str], width: int, height: int) -> str:
-    """Cache file of one training split and image size, e.g. ``sparse_depth_6-13_504x378.npz``."""
+def cache_file_name(view_names: Sequence[str], width: int, height: int, kind: str = "sparse_depth") -> str:
+    """Cache file of one training split and image size, e.g. ``sparse_depth_6-13_504x378.npz`` (``kind``
+    names what is cached: sparse points, or mono_depth predictions)."""
     views = "-".join(Path(name).stem for name in view_names)
     if len(views) > 80:  # many views: keep the name short, still unique
         views = hashlib.sha1(views.encode()).hexdigest()[:12]
-    return f"sparse_depth_{views}_{width}x{height}.npz"
+    return f"{kind}_{views}_{width}x{height}.npz"
