@@ -102,6 +102,59 @@ def cross_scale_geometric_adaptation(
     return AdaptationResult(loss_train, loss_novel, chosen)
 
 
+# Colours of the viewer's "pseudo_gt_scale" output: full scale red, scale 1 blue, scale 2 green, scale 3
+# orange; rays left out (no scale within the threshold, or no training view to warp into) dark grey.
+SCALE_CHOICE_COLORS = ((0.89, 0.10, 0.11), (0.22, 0.49, 0.72), (0.30, 0.69, 0.29), (1.00, 0.50, 0.00))
+LEFT_OUT_COLOR = (0.15, 0.15, 0.15)
+
+
+def nearest_other_camera(
+    origins: Float[Tensor, "rays 3"], camera_to_worlds: Float[Tensor, "views 3 4"], same_camera_fraction: float = 1e-3
+) -> Int[Tensor, "rays"]:
+    """Training view whose centre is closest to each ray's origin, skipping a camera the ray starts in.
+
+    A ray cast from a training camera itself must warp into another view (warping into its own view gives
+    every depth the same error), as training rays do. "Starts in" means closer than ``same_camera_fraction``
+    of the widest training baseline. -1 where no other view exists.
+    """
+    centers = camera_to_worlds[:, :3, 3].double()
+    baseline = torch.cdist(centers, centers).max() if len(centers) > 1 else centers.new_tensor(0.0)
+    distance = torch.cdist(origins.double(), centers)
+    distance = torch.where(distance <= same_camera_fraction * baseline, torch.full_like(distance, float("inf")), distance)
+    best = distance.argmin(dim=-1)
+    return torch.where(torch.isfinite(distance.min(dim=-1).values), best, torch.full_like(best, -1))
+
+
+def pseudo_ground_truth_scale(
+    origins: Float[Tensor, "rays 3"],
+    directions: Float[Tensor, "rays 3"],
+    metric_depths: Float[Tensor, "scales rays"],
+    rendered_colors: Float[Tensor, "rays 3"],
+    images: Float[Tensor, "views height width 3"],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    threshold: float,
+    kind: ErrorKind = "rmse",
+) -> Int[Tensor, "rays"]:
+    """Eq. 6-8 for any rays (a viewer or render camera): the scale whose depth would become each ray's
+    pseudo ground truth, -1 where the ray would be left out.
+
+    The rays are treated as novel-view rays: single pixels, the rendered colour as the source (Eq. 6),
+    warped into the nearest training view that is not the ray's own camera.
+    """
+    nearest = nearest_other_camera(origins, camera_to_worlds)
+    return cross_scale_geometric_adaptation(
+        origins, directions, metric_depths, metric_depths, rendered_colors.detach(), nearest, 0, 1,
+        images, camera_to_worlds, intrinsics, threshold, kind,
+    ).chosen_scale
+
+
+def scale_choice_colors(chosen_scale: Int[Tensor, "*shape"]) -> Float[Tensor, "*shape 3"]:
+    """One colour per chosen scale (``SCALE_CHOICE_COLORS``), ``LEFT_OUT_COLOR`` for -1."""
+    palette = torch.tensor((LEFT_OUT_COLOR,) + SCALE_CHOICE_COLORS, device=chosen_scale.device)
+    return palette[(chosen_scale + 1).clamp(0, len(SCALE_CHOICE_COLORS))]
+
+
 def scale_statistics(chosen_scale: Int[Tensor, "rays"], num_scales: int) -> Dict[str, float]:
     """Fraction of rays whose pseudo depth came from each scale, and of rays left out (paper Fig.
     "Cross-scale geometric adaptation in training"); the fractions sum to 1."""

@@ -19,12 +19,20 @@ from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttrib
 from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
+from nerfstudio.viewer.viewer_elements import ViewerCheckbox
 from torch import Tensor, nn
 from torch.nn import Parameter
 
 from frugalnerf_ns import losses
 from frugalnerf_ns.color_mlp import MLPImplementation
-from frugalnerf_ns.geometric_adaptation import AdaptationResult, ScaleFractionHistory, cross_scale_geometric_adaptation, scale_statistics
+from frugalnerf_ns.geometric_adaptation import (
+    AdaptationResult,
+    ScaleFractionHistory,
+    cross_scale_geometric_adaptation,
+    pseudo_ground_truth_scale,
+    scale_choice_colors,
+    scale_statistics,
+)
 from frugalnerf_ns.field import DensityActivation, FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.reprojection import ErrorKind, depth_smoothness_loss
@@ -139,6 +147,12 @@ class FrugalNeRFModelConfig(ModelConfig):
     LLFF 0.025, DTU 0.05); 1 keeps every weight constant."""
 
 
+class ReferenceViews(NamedTuple):
+    images: Float[Tensor, "views height width 3"]
+    camera_to_worlds: Float[Tensor, "views 3 4"]
+    intrinsics: Float[Tensor, "views 4"]
+
+
 class ScaleRender(NamedTuple):
     rgb: Float[Tensor, "rays 3"]
     depth: Float[Tensor, "rays 1"]
@@ -192,6 +206,35 @@ class FrugalNeRFModel(Model):
         self.scale_history = ScaleFractionHistory()
         # Factor of the decaying loss weights (losses.loss_weight_schedule), set before every training step.
         self.loss_schedule_factor = 1.0
+        # Training images and cameras for the pseudo-GT scale map outside training (set_reference_views).
+        self.reference_views: Optional[ReferenceViews] = None
+        # Viewer panel ("Custom Elements"): the lower scales cost most of a frame's render time on a CPU.
+        self.viewer_lower_scales = ViewerCheckbox(
+            "Render lower scales", True, hint="Render every scale (rgb/depth per scale, pseudo-GT scale map); "
+            "off renders only the full scale, faster on a CPU."
+        )
+        # None: the map is rendered only for a viewer (checkbox on); True/False force it (tests, benchmarks).
+        # ns-eval and evaluation during training never show it, so they do not pay for it.
+        self.render_scale_map: Optional[bool] = None
+        self.viewer_scale_map = ViewerCheckbox(
+            "Pseudo-GT scale map", True, hint="Output pseudo_gt_scale: which scale's depth the geometric "
+            "adaptation would take (red full, blue 1, green 2, grey left out)."
+        )
+
+    def set_reference_views(
+        self,
+        images: Float[Tensor, "views height width 3"],
+        camera_to_worlds: Float[Tensor, "views 3 4"],
+        intrinsics: Float[Tensor, "views 4"],
+    ) -> None:
+        """Training views the pseudo-GT scale map warps into (FrugalPipeline calls this at set-up). Kept out
+        of the state dict: they come from the data, not from training."""
+        self.reference_views = ReferenceViews(images, camera_to_worlds, intrinsics)
+
+    def _scale_map_wanted(self) -> bool:
+        if self.render_scale_map is not None:
+            return self.render_scale_map
+        return self.viewer_scale_map.gui_handle is not None and bool(self.viewer_scale_map.value)
 
     @contextlib.contextmanager
     def full_scale_only(self) -> Iterator[None]:
@@ -309,6 +352,8 @@ class FrugalNeRFModel(Model):
         num_scales = self.field.num_scales
         if not self.training and self.num_rendered_scales is not None:
             num_scales = min(num_scales, self.num_rendered_scales)
+        elif not self.training and not self.viewer_lower_scales.value:
+            num_scales = 1
         for scale in range(num_scales):
             render = self.render_scale(origins, directions, scale, background, segments)
             suffix = scale_suffix(scale)
@@ -331,6 +376,17 @@ class FrugalNeRFModel(Model):
         if self.training:
             outputs["ray_origins"] = ray_bundle.origins.reshape(-1, 3)
             outputs["ray_directions"] = ray_bundle.directions.reshape(-1, 3)
+        elif num_scales == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
+            chosen = pseudo_ground_truth_scale(
+                ray_bundle.origins.reshape(-1, 3),
+                ray_bundle.directions.reshape(-1, 3),
+                torch.stack([outputs[f"depth{scale_suffix(s)}"].reshape(-1) for s in range(num_scales)]),
+                outputs["rgb"].reshape(-1, 3),
+                *self.reference_views,
+                self.config.reprojection_threshold,
+                self.config.reprojection_error,
+            )
+            outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
         return outputs
 
     # ---- losses and metrics -----------------------------------------------------------------------------

@@ -18,12 +18,12 @@ from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from frugalnerf_ns.datamanager import FrugalDataManagerConfig
 from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig
 from frugalnerf_ns.model import FrugalNeRFModelConfig
+from frugalnerf_ns.pipeline import FrugalPipelineConfig
 
 
 @dataclasses.dataclass
@@ -66,7 +66,7 @@ def base_trainer_config(method_name: str) -> TrainerConfig:
     """The shape of every FrugalNeRF run; the numbers come from the presets."""
     return TrainerConfig(
         method_name=method_name,
-        pipeline=VanillaPipelineConfig(
+        pipeline=FrugalPipelineConfig(
             datamanager=FrugalDataManagerConfig(dataparser=AutoDataParserConfig()),
             model=FrugalNeRFModelConfig(),
         ),

@@ -5,9 +5,20 @@ import json
 import pytest
 import torch
 
-from frugalnerf_ns.geometric_adaptation import ScaleFractionHistory, cross_scale_geometric_adaptation, scale_statistics
+from frugalnerf_ns.geometric_adaptation import (
+    LEFT_OUT_COLOR,
+    SCALE_CHOICE_COLORS,
+    ScaleFractionHistory,
+    cross_scale_geometric_adaptation,
+    nearest_other_camera,
+    pseudo_ground_truth_scale,
+    scale_choice_colors,
+    scale_statistics,
+)
 from frugalnerf_ns.model import FrugalNeRFModelConfig
+from frugalnerf_ns.reprojection import unproject_along_rays
 from tests.test_datamanager import manager_for
+from tests.test_reprojection import INTRINSICS, camera, patch_pixels, pixel_rays, plane_depth, render_plane, texture
 
 
 @pytest.fixture(scope="module")
@@ -109,3 +120,43 @@ def test_scale_history_writes_json_and_png(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     data = json.loads((tmp_path / "geometric_adaptation.json").read_text())
     assert data["steps"] == list(range(5)) and data["stats"][0]["geo_scale2_fraction"] == 0.4
+
+
+def test_viewer_rays_warp_into_the_nearest_camera_they_do_not_start_in():
+    c2w = torch.stack([camera(), camera(x=1.0), camera(x=5.0)])
+    origins = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.0, 0.0], [4.0, 0.0, 0.0], [1.0 + 1e-5, 0.0, 0.0]])
+    assert nearest_other_camera(origins, c2w).tolist() == [1, 0, 0, 2, 0]
+    # A single training view: a ray from it has nowhere to warp; a ray from elsewhere warps into it.
+    assert nearest_other_camera(origins[:2], c2w[:1]).tolist() == [-1, 0]
+
+
+@pytest.mark.parametrize("true_scale", [0, 1, 2])
+def test_pseudo_gt_scale_map_picks_the_scale_whose_depth_explains_the_nearest_view(true_scale):
+    cameras = torch.stack([camera(), camera(x=1.0)])
+    images = torch.stack([render_plane(c) for c in cameras])
+    viewer = camera(x=0.3)  # a novel camera: nearest training view is camera 0
+    pixels = patch_pixels(top=14, left=20, k=16)
+    origins, directions = pixel_rays(viewer, pixels)
+    true_depth = plane_depth(origins, directions)
+    factors = torch.tensor([1.15, 0.85, 1.3])
+    factors[true_scale] = 1.0
+    depths = factors[:, None] * true_depth[None]
+    colors = texture(unproject_along_rays(origins, directions, true_depth))
+    chosen = pseudo_ground_truth_scale(
+        origins, directions, depths, colors, images, cameras, INTRINSICS.expand(2, 4), threshold=0.5
+    )
+    assert chosen.shape == (len(pixels),)
+    assert (chosen == true_scale).float().mean() > 0.9
+    # With a threshold below every error, every ray is left out.
+    wrong = pseudo_ground_truth_scale(
+        origins, directions, depths * 1.5, colors, images, cameras, INTRINSICS.expand(2, 4), threshold=1e-4
+    )
+    assert (wrong == -1).all()
+
+
+def test_scale_choice_colors_use_one_colour_per_scale_and_grey_for_left_out():
+    colors = scale_choice_colors(torch.tensor([[-1, 0], [1, 2]]))
+    assert colors.shape == (2, 2, 3)
+    assert torch.allclose(colors[0, 0], torch.tensor(LEFT_OUT_COLOR))
+    for scale, pixel in ((0, colors[0, 1]), (1, colors[1, 0]), (2, colors[1, 1])):
+        assert torch.allclose(pixel, torch.tensor(SCALE_CHOICE_COLORS[scale]))
