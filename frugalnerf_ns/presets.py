@@ -123,6 +123,8 @@ def method_specification(name: str) -> MethodSpecification:
 
 # Entry points (pyproject.toml, group nerfstudio.method_configs) point at these.
 frugalnerf = method_specification("frugalnerf")
+frugalnerf_fast = method_specification("frugalnerf-fast")
+frugalnerf_quality = method_specification("frugalnerf-quality")
 frugalnerf_tiny = method_specification("frugalnerf-tiny")
 frugalnerf_dtu = method_specification("frugalnerf-dtu")
 frugalnerf_cpu = method_specification("frugalnerf-cpu")

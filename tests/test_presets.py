@@ -7,7 +7,9 @@ from frugalnerf_ns import presets
 
 def test_entry_points_register_the_methods():
     names = {ep.name for ep in entry_points(group="nerfstudio.method_configs")}
-    assert {"frugalnerf", "frugalnerf-tiny", "frugalnerf-dtu"} <= names
+    # Every preset in the YAML is a method nerfstudio can run.
+    assert set(presets.load_preset_table()) <= names
+    assert {"frugalnerf", "frugalnerf-fast", "frugalnerf-quality", "frugalnerf-tiny", "frugalnerf-dtu"} <= names
     parsers = {ep.name for ep in entry_points(group="nerfstudio.dataparser_configs")}
     assert {"frugal-auto", "frugal-llff", "frugal-dtu", "frugal-realestate", "frugal-nerfstudio", "frugal-colmap"} <= parsers
 
@@ -64,3 +66,24 @@ def test_bad_presets_fail_clearly():
 def test_list_values_become_tuples():
     table = {"x": {"description": "", "overrides": {"pipeline.model.upsample_iters": [1, 2]}}}
     assert presets.build_trainer_config("x", table).pipeline.model.upsample_iters == (1, 2)
+
+
+@pytest.mark.parametrize("name", sorted(presets.load_preset_table()))
+def test_every_preset_schedule_fits_its_iterations(name):
+    config = presets.build_trainer_config(name)
+    total = config.max_num_iterations
+    model = config.pipeline.model
+    assert all(0 < step < total for step in model.upsample_iters + model.alpha_mask_iters), name
+    assert list(model.upsample_iters) == sorted(model.upsample_iters)
+    for group in config.optimizers.values():
+        assert group["scheduler"].max_steps == total, name  # the learning rate reaches lr_final at the end
+    assert model.initial_voxels <= model.final_voxels
+
+
+def test_speed_presets_trade_iterations_and_grid_against_the_paper_preset():
+    paper, fast, quality = (presets.build_trainer_config(n) for n in ("frugalnerf", "frugalnerf-fast", "frugalnerf-quality"))
+    assert fast.max_num_iterations < paper.max_num_iterations < quality.max_num_iterations
+    assert fast.pipeline.model.final_voxels < paper.pipeline.model.final_voxels == quality.pipeline.model.final_voxels
+    assert quality.pipeline.datamanager.train_num_rays_per_batch > paper.pipeline.datamanager.train_num_rays_per_batch
+    # Everything else stays the paper's (same losses and weights).
+    assert fast.pipeline.model.geo_weight == paper.pipeline.model.geo_weight == quality.pipeline.model.geo_weight
