@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Optional, Tuple, Type
+from typing import Dict, Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -34,6 +34,7 @@ from torch import Tensor
 from frugalnerf_ns.data import DataError
 from frugalnerf_ns.mono_depth import load_or_predict
 from frugalnerf_ns.novel_views import nearest_training_views, spiral_focus_depth, spiral_poses
+from frugalnerf_ns.scene_analysis import CameraLayout, SceneType, classify_camera_layout, has_plain_background
 from frugalnerf_ns.sparse_points import (
     SparseDepth,
     TriangulationOptions,
@@ -110,6 +111,9 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     """The depth model predicts relative inverse depth (DPT and Depth-Anything do)."""
     mono_depth_input_size: int = 384
     """Square input size of the depth model (DPT 384, Depth-Anything 518)."""
+    scene_type: Literal["auto", "forward-facing", "object", "360"] = "auto"
+    """What the scene is; auto detects it from the training cameras (and an object mask or plain
+    background). 360 scenes get no spiral novel rays; only object scenes get the occlusion loss."""
 
 
 NOVEL_PATCH = 2  # novel-view rays come in 2x2 patches for the depth smoothness loss
@@ -152,6 +156,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         self.warp_camera_to_worlds = cameras.camera_to_worlds.float().to(self.device)
         centers = cameras.camera_to_worlds[:, :3, 3]
         self.train_nearest_view = nearest_training_views(centers, centers, torch.arange(len(centers))).to(self.device)
+        self.scene_layout = self._scene_layout(cameras)
         if len(centers) < 2:
             CONSOLE.print(
                 "[bold yellow]frugalnerf: one training view: geometric adaptation needs two, so training goes on "
@@ -162,7 +167,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         # (ns-export pointcloud sets train_pixel_sampler.num_rays_per_batch), so next_train honours it.
         self.train_pixel_sampler = PixelSamplerConfig(num_rays_per_batch=self.config.train_num_rays_per_batch).setup()
         self.generator = torch.Generator().manual_seed(self.config.seed)
-        if self.config.novel_views and self.config.num_novel_rays_per_batch > 0:
+        if self.config.novel_views and self.config.num_novel_rays_per_batch > 0 and self.scene_type != "360":
             self.novel_cameras = self._spiral_cameras(cameras)
             self.novel_nearest_view = nearest_training_views(self.novel_cameras.camera_to_worlds[:, :3, 3], centers).to(
                 self.device
@@ -175,6 +180,21 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         model_path = getattr(self.config, "mono_depth_model", None)
         if self.test_mode == "val" and model_path is not None:
             self.mono_depth = self._mono_depth(Path(model_path))
+
+    def _scene_layout(self, cameras: Cameras) -> CameraLayout:
+        """Classify the scene and publish what the model needs (scene type, training pixel count) in the
+        dataset metadata, which nerfstudio hands to the model."""
+        has_alpha = self.train_images.shape[-1] == 4
+        has_masks = getattr(self.train_dataparser_outputs, "mask_filenames", None) is not None
+        layout = classify_camera_layout(
+            cameras.camera_to_worlds, has_object_mask=has_alpha or has_masks or has_plain_background(self.warp_images)
+        )
+        self.scene_type: SceneType = layout.scene_type if self.config.scene_type == "auto" else self.config.scene_type
+        self.train_dataset.metadata["frugalnerf_scene"] = {
+            "scene_type": self.scene_type,
+            "num_train_pixels": int(self.train_images.shape[0] * self.train_images.shape[1] * self.train_images.shape[2]),
+        }
+        return layout
 
     def _cache_path(self, kind: str) -> Path:
         """Cache file for this training split and image size, in frugalnerf_cache next to the data (or

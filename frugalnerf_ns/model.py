@@ -38,6 +38,7 @@ from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.reprojection import ErrorKind, depth_smoothness_loss
 from frugalnerf_ns.mono_depth import per_view_pearson_loss
 from frugalnerf_ns.sparse_points import inverse_depth_loss
+from frugalnerf_ns.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.raymarch import RaySegments, composite_rgb, composite_weights, intersect_aabb, march_steps
 
 Background = Literal["random_white", "white", "black"]
@@ -60,7 +61,10 @@ class FrugalNeRFModelConfig(ModelConfig):
     initial_voxels: int = 64**3
     """Voxel count of the grid at the start of training."""
     final_voxels: int = 640**3
-    """Voxel count after the last upsampling (paper: 640^3 for LLFF, 300^3 for DTU)."""
+    """Voxel count after the last upsampling (paper: 640^3 for LLFF, 300^3 for DTU); ignored with auto-grid."""
+    auto_grid: bool = False
+    """Size the final grid from the training pixels instead of final-voxels: side = 0.52 sqrt(pixels), the
+    paper's ratio (640^3 for two 1008x756 views; ~320^3 for two 504x378 views), clamped to 32..640."""
     upsample_iters: Tuple[int, ...] = (500, 1000, 1500, 2000, 2500, 3000)
     """Steps at which the grid is upsampled (log-linear in voxel count); the grid optimiser restarts."""
     alpha_mask_iters: Tuple[int, ...] = (1000, 2000)
@@ -193,8 +197,14 @@ class FrugalNeRFModel(Model):
             view_pe=self.config.view_pe,
             mlp_implementation=self.config.mlp_implementation,
         )
+        # What the datamanager found out about the scene (FrugalDataManager; absent with other datamanagers).
+        scene = (self.kwargs.get("metadata") or {}).get("frugalnerf_scene") or {}
+        self.scene_type: Optional[str] = scene.get("scene_type")
+        self.final_voxels = self.config.final_voxels
+        if self.config.auto_grid and "num_train_pixels" in scene:
+            self.final_voxels = max(self.config.initial_voxels, grid_side_for_pixels(scene["num_train_pixels"]) ** 3)
         self.upsample_voxels = log_linear_voxel_counts(
-            self.config.initial_voxels, self.config.final_voxels, len(self.config.upsample_iters)
+            self.config.initial_voxels, self.final_voxels, len(self.config.upsample_iters)
         )
         # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
         self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
@@ -230,6 +240,13 @@ class FrugalNeRFModel(Model):
         """Training views the pseudo-GT scale map warps into (FrugalPipeline calls this at set-up). Kept out
         of the state dict: they come from the data, not from training."""
         self.reference_views = ReferenceViews(images, camera_to_worlds, intrinsics)
+
+    @property
+    def occlusion_active(self) -> bool:
+        """The occlusion loss is for object scenes (floaters in front of a masked or plain-background
+        object); other scene types skip it even with a weight (``--pipeline.datamanager.scene-type``
+        overrides the detection)."""
+        return self.config.occlusion_weight > 0 and self.scene_type in (None, "object")
 
     def _scale_map_wanted(self) -> bool:
         if self.render_scale_map is not None:
@@ -369,7 +386,7 @@ class FrugalNeRFModel(Model):
                 outputs[f"t{suffix}"] = render.t
                 # The depth the field renders in (NDC t in NDC scenes): what L_geo and smoothness compare.
                 outputs[f"render_depth{suffix}"] = render.depth
-                if self.config.occlusion_weight > 0:
+                if self.occlusion_active:
                     outputs[f"densities{suffix}"] = render.densities
                     outputs[f"sample_colors{suffix}"] = render.colors
                     outputs[f"shaded{suffix}"] = render.shaded

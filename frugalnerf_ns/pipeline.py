@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Type
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
 
 
 @dataclass
@@ -28,3 +29,45 @@ class FrugalPipeline(VanillaPipeline):
         set_views = getattr(self.model, "set_reference_views", None)
         if images is not None and set_views is not None:
             set_views(images, self.datamanager.warp_camera_to_worlds, self.datamanager.warp_intrinsics)
+        if self.test_mode == "val" and hasattr(self.datamanager, "scene_layout") and hasattr(self.model, "scene_type"):
+            CONSOLE.print(scene_summary(self.datamanager, self.model))
+
+
+def scene_summary(datamanager, model) -> str:
+    """One short summary of what training will model for this scene, and how to override each choice."""
+    layout, dm, cfg = datamanager.scene_layout, datamanager.config, model.config
+    detected = "detected" if dm.scene_type == "auto" else "set by --pipeline.datamanager.scene-type"
+    views = len(datamanager.warp_images)
+    if model.ndc is not None:
+        space = "NDC (forward-facing, the data's near/far bounds)"
+    else:
+        size = (model.field.aabb[1] - model.field.aabb[0]).tolist()
+        space = "bounded box " + " x ".join(f"{v:.3g}" for v in size)
+    side = round(model.final_voxels ** (1 / 3))
+    pixels = (model.kwargs.get("metadata") or {}).get("frugalnerf_scene", {}).get("num_train_pixels", 0)
+    grid = f"{side}^3 final grid " + (
+        f"(auto: {pixels:,} training pixels)" if cfg.auto_grid else "(--pipeline.model.final-voxels; --pipeline.model.auto-grid sizes it from the pixels)"
+    )
+    if not dm.sparse_depth or dm.num_sparse_rays_per_batch <= 0:
+        sparse = "off (option)"
+    elif views < 2:
+        sparse = "off (one view)"
+    elif datamanager.sparse is None:
+        sparse = f"off (fewer than {dm.min_sparse_points} points)"
+    else:
+        sparse = f"on ({datamanager.sparse.num_points} points)"
+    if datamanager.novel_cameras is not None:
+        novel = f"on ({len(datamanager.novel_cameras)} spiral poses)"
+    else:
+        novel = "off (360 scene)" if datamanager.scene_type == "360" and dm.novel_views else "off (option)"
+    if cfg.occlusion_weight <= 0:
+        occlusion = "off (weight 0)"
+    else:
+        occlusion = "on" if model.occlusion_active else "off (not an object scene)"
+    geo = "on" if cfg.geo_weight > 0 and views >= 2 else ("off (one view)" if views < 2 else "off (weight 0)")
+    return (
+        f"frugalnerf scene: {datamanager.scene_type} ({detected}: views within {layout.spread_degrees:.1f} deg of their "
+        f"mean, cameras cover {layout.coverage_degrees:.0f} deg around the focus); {views} training views\n"
+        f"  space: {space}; {grid}\n"
+        f"  losses: geometric adaptation {geo}, novel rays {novel}, sparse depth {sparse}, occlusion {occlusion}"
+    )

@@ -1,0 +1,143 @@
+"""What a scene needs, decided from its training cameras and images (pure torch, no nerfstudio).
+
+FrugalNeRF's settings differ by scene kind: forward-facing captures (LLFF) render in NDC and learn from a
+spiral of novel poses; object captures with a mask or a plain background (DTU) get the occlusion loss;
+360-degree captures need neither a spiral in front of the cameras nor NDC. ``classify_camera_layout``
+tells them apart from the camera layout alone; ``grid_side_for_pixels`` sizes the grid by how much the
+training images can actually resolve.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal, NamedTuple
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+SceneType = Literal["forward-facing", "object", "360"]
+SCENE_TYPES = ("forward-facing", "object", "360")
+
+FORWARD_FACING_MAX_SPREAD = 13.0
+"""Degrees: viewing directions all within this of their mean make a forward-facing capture. Measured on
+our scenes: fern views 6/13 spread 1.8, views 6/9/13 9.3; DTU scan65 views 22/25 17.3, 22/25/28 36.0
+(object rigs converge on the object). Two close object views can fall under it: an object mask or a
+plain background then decides."""
+SURROUND_MIN_COVERAGE = 180.0
+"""Degrees of azimuth around the focus point the camera centres must cover to count as a 360 capture."""
+
+
+class CameraLayout(NamedTuple):
+    scene_type: SceneType
+    spread_degrees: float
+    """Largest angle between a camera's viewing direction and the mean viewing direction."""
+    coverage_degrees: float
+    """Azimuth the camera centres cover around the focus point (360 minus the largest gap)."""
+    focus: Float[Tensor, "3"]
+    """Point closest to all optical axes (least squares), where the cameras look."""
+
+
+def viewing_directions(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Float[Tensor, "views 3"]:
+    """Unit world direction each camera looks along (OpenGL axes: -z)."""
+    return torch.nn.functional.normalize(-camera_to_worlds[:, :3, 2].double(), dim=-1)
+
+
+def focus_point(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Float[Tensor, "3"]:
+    """Least-squares point nearest every optical axis.
+
+    Nearly parallel axes (a forward-facing capture) make the plain solve ill-conditioned: a small ridge
+    towards the point one mean camera distance ahead of the cameras keeps it finite and sensible there.
+    """
+    centers = camera_to_worlds[:, :3, 3].double()
+    directions = viewing_directions(camera_to_worlds)
+    eye = torch.eye(3, dtype=torch.float64)
+    projectors = eye - directions[:, :, None] * directions[:, None, :]  # [views, 3, 3]
+    spread = (centers - centers.mean(0)).norm(dim=-1).mean()
+    scale = float(spread) if spread > 0 else 1.0
+    ahead = centers.mean(0) + directions.mean(0) * scale
+    ridge = 1e-3
+    lhs = projectors.sum(0) + ridge * eye
+    rhs = (projectors @ centers[:, :, None]).sum(0)[:, 0] + ridge * ahead
+    return torch.linalg.solve(lhs, rhs)
+
+
+def azimuth_coverage(
+    centers: Float[Tensor, "views 3"], focus: Float[Tensor, "3"], up: Float[Tensor, "3"]
+) -> float:
+    """Degrees of azimuth around ``focus`` (about ``up``) that the camera centres span: 360 minus the
+    largest empty gap between neighbouring cameras. 0 for a single camera."""
+    if len(centers) < 2:
+        return 0.0
+    up = torch.nn.functional.normalize(up.double(), dim=0)
+    offsets = centers.double() - focus.double()
+    offsets = offsets - (offsets @ up)[:, None] * up[None]
+    helper = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    if abs(float(helper @ up)) > 0.9:
+        helper = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    first = torch.nn.functional.normalize(torch.linalg.cross(up, helper), dim=0)
+    second = torch.linalg.cross(up, first)
+    angles = torch.atan2(offsets @ second, offsets @ first).sort().values
+    gaps = torch.cat([angles[1:] - angles[:-1], (angles[:1] + 2 * math.pi) - angles[-1:]])
+    return math.degrees(2 * math.pi - float(gaps.max()))
+
+
+def classify_camera_layout(
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    has_object_mask: bool = False,
+    forward_facing_max_spread: float = FORWARD_FACING_MAX_SPREAD,
+    surround_min_coverage: float = SURROUND_MIN_COVERAGE,
+) -> CameraLayout:
+    """Forward-facing, object or 360 from the training cameras.
+
+    - 360: the centres surround the focus point (azimuth coverage >= ``surround_min_coverage``) or the
+      cameras look in opposing directions (mean viewing direction shorter than 0.5).
+    - forward-facing: every viewing direction within ``forward_facing_max_spread`` degrees of the mean,
+      and no object mask / plain background (``has_object_mask``).
+    - object: everything else (cameras converging on something, or a masked object).
+    """
+    directions = viewing_directions(camera_to_worlds)
+    mean = directions.mean(0)
+    resultant = float(mean.norm())
+    if resultant < 1e-9:
+        spread = 180.0
+    else:
+        cosines = (directions @ (mean / mean.norm())).clamp(-1.0, 1.0)
+        spread = math.degrees(float(torch.acos(cosines).max()))
+    focus = focus_point(camera_to_worlds)
+    up = camera_to_worlds[:, :3, 1].double().mean(0)
+    if float(up.norm()) < 1e-9:
+        up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    coverage = azimuth_coverage(camera_to_worlds[:, :3, 3], focus, up)
+    if coverage >= surround_min_coverage or resultant < 0.5:
+        kind: SceneType = "360"
+    elif spread <= forward_facing_max_spread and not has_object_mask:
+        kind = "forward-facing"
+    else:
+        kind = "object"
+    return CameraLayout(kind, spread, coverage, focus.float())
+
+
+def has_plain_background(images: Float[Tensor, "views height width 3"], tolerance: float = 0.05, fraction: float = 0.9) -> bool:
+    """True when at least ``fraction`` of every image's border pixels are one colour (within ``tolerance``
+    of their median): the black or white backdrop of an object capture (DTU, synthetic objects)."""
+    for image in images:
+        border = torch.cat([image[0], image[-1], image[:, 0], image[:, -1]]).float()
+        median = border.median(dim=0).values
+        close = ((border - median).abs().max(dim=-1).values <= tolerance).float().mean()
+        if float(close) < fraction:
+            return False
+    return len(images) > 0
+
+
+PAPER_GRID_SIDE_PER_PIXEL_ROOT = 640.0 / math.sqrt(2 * 1008 * 756)
+"""The paper's 640^3 LLFF grid for its own input (2 views at 1008x756): grid side per square root of the
+number of training pixels (~0.52). A VM grid's planes (most of its parameters) grow with side^2, i.e. with
+the pixel count, so keeping this ratio keeps parameters per observed pixel at the paper's."""
+
+
+def grid_side_for_pixels(num_train_pixels: int, side_per_pixel_root: float = PAPER_GRID_SIDE_PER_PIXEL_ROOT,
+                         min_side: int = 32, max_side: int = 640) -> int:
+    """Grid side (voxels along the longest axis of a cube) scaled to the training pixels (paper ratio)."""
+    side = side_per_pixel_root * math.sqrt(max(1, num_train_pixels))
+    return int(min(max_side, max(min_side, round(side))))

@@ -1,0 +1,95 @@
+"""Scene-type detection on synthetic camera layouts, and the pixel-scaled grid size (pure torch)."""
+
+import math
+
+import pytest
+import torch
+
+from frugalnerf_ns.scene_analysis import (
+    PAPER_GRID_SIDE_PER_PIXEL_ROOT,
+    classify_camera_layout,
+    focus_point,
+    grid_side_for_pixels,
+    has_plain_background,
+)
+
+
+def look_at(center, target, up=(0.0, 1.0, 0.0)):
+    """OpenGL camera-to-world (looks down -z) at ``center`` looking at ``target``."""
+    center, target, up = (torch.tensor(v, dtype=torch.float64) for v in (center, target, up))
+    forward = torch.nn.functional.normalize(target - center, dim=0)
+    right = torch.nn.functional.normalize(torch.linalg.cross(forward, up), dim=0)
+    true_up = torch.linalg.cross(right, forward)
+    return torch.stack([right, true_up, -forward, center], dim=1).float()
+
+
+def forward_facing(views=4, baseline=0.2):
+    """A handheld grid of cameras looking at a wall 4 units away (LLFF-like)."""
+    centers = [(baseline * (i % 2), baseline * (i // 2), 0.0) for i in range(views)]
+    return torch.stack([look_at(c, (0.1, 0.1, -4.0)) for c in centers])
+
+
+def ring(views, arc_degrees, radius=3.0):
+    """Cameras on an arc of ``arc_degrees`` around the origin, looking at it (object rig / 360 capture)."""
+    angles = [math.radians(arc_degrees) * i / max(1, views - (0 if arc_degrees >= 360 else 1)) for i in range(views)]
+    return torch.stack([look_at((radius * math.sin(a), 0.5, radius * math.cos(a)), (0.0, 0.0, 0.0)) for a in angles])
+
+
+@pytest.mark.parametrize("views", [2, 3, 8])
+def test_forward_facing_layouts(views):
+    layout = classify_camera_layout(forward_facing(views))
+    assert layout.scene_type == "forward-facing"
+    assert layout.spread_degrees < 5.0
+
+
+@pytest.mark.parametrize("views,arc", [(2, 40), (3, 60), (5, 90)])
+def test_object_rigs_converge_on_the_object(views, arc):
+    layout = classify_camera_layout(ring(views, arc))
+    assert layout.scene_type == "object"
+    assert torch.allclose(layout.focus, torch.zeros(3), atol=0.15)  # the cameras look at the origin
+
+
+@pytest.mark.parametrize("views", [4, 8, 20])
+def test_full_circles_are_360(views):
+    layout = classify_camera_layout(ring(views, 360))
+    assert layout.scene_type == "360"
+    assert layout.coverage_degrees >= 180.0
+
+
+def test_two_cameras_facing_each_other_are_360():
+    cameras = torch.stack([look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0)), look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0))])
+    assert classify_camera_layout(cameras).scene_type == "360"
+
+
+def test_a_mask_or_plain_background_turns_a_narrow_rig_into_an_object_scene():
+    narrow = ring(2, 10)  # two object views 10 degrees apart look forward-facing by layout alone
+    assert classify_camera_layout(narrow).scene_type == "forward-facing"
+    assert classify_camera_layout(narrow, has_object_mask=True).scene_type == "object"
+
+
+def test_single_view_is_classified_and_finite():
+    layout = classify_camera_layout(forward_facing(1))
+    assert layout.scene_type == "forward-facing" and layout.coverage_degrees == 0.0
+    assert torch.isfinite(layout.focus).all()
+
+
+def test_focus_of_parallel_cameras_is_finite_and_ahead_of_them():
+    cameras = forward_facing(4)
+    cameras[:, :3, :3] = torch.eye(3)  # exactly parallel axes: the plain least squares is singular
+    focus = focus_point(cameras)
+    assert torch.isfinite(focus).all() and float(focus[2]) < 0.0
+
+
+def test_plain_background_detection():
+    white = torch.ones(2, 20, 30, 3)
+    white[:, 5:15, 8:22] = torch.rand(2, 10, 14, 3)  # an object in the middle
+    assert has_plain_background(white)
+    assert not has_plain_background(torch.rand(2, 20, 30, 3))
+
+
+def test_grid_side_scales_with_the_square_root_of_the_training_pixels():
+    assert grid_side_for_pixels(2 * 1008 * 756) == 640  # the paper's LLFF input gets the paper's grid
+    fern_eighth = grid_side_for_pixels(2 * 504 * 378)
+    assert fern_eighth == round(PAPER_GRID_SIDE_PER_PIXEL_ROOT * math.sqrt(2 * 504 * 378)) == 320
+    assert grid_side_for_pixels(4 * 504 * 378) > fern_eighth
+    assert grid_side_for_pixels(10) == 32 and grid_side_for_pixels(10**9) == 640  # clamped

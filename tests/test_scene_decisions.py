@@ -1,0 +1,68 @@
+"""What the datamanager and model decide from the scene at start-up, and that the CLI overrides win."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from frugalnerf_ns.model import FrugalNeRFModelConfig
+from frugalnerf_ns.scene_analysis import grid_side_for_pixels
+from tests.test_datamanager import manager_for
+
+TINY_MODEL = dict(
+    initial_voxels=16**3, final_voxels=24**3, upsample_iters=(10,), alpha_mask_iters=(), density_components=(4, 2, 2),
+    appearance_components=(8, 2, 2), mlp_hidden_dim=16,
+)
+
+
+def model_for(manager, **overrides):
+    config = FrugalNeRFModelConfig(**{**TINY_MODEL, **overrides})
+    dataset = manager.train_dataset
+    return config.setup(scene_box=dataset.scene_box, num_train_data=len(dataset), metadata=dataset.metadata)
+
+
+def test_procedural_object_scene_is_detected_and_published_to_the_model(procedural_scene, tmp_path):
+    manager = manager_for(procedural_scene, sparse_cache_dir=tmp_path)
+    assert manager.scene_type == "object"  # cameras circling an object on a plain white background
+    scene = manager.train_dataset.metadata["frugalnerf_scene"]
+    height, width = manager.warp_images.shape[1:3]
+    assert scene == {"scene_type": "object", "num_train_pixels": len(manager.warp_images) * height * width}
+    model = model_for(manager, occlusion_weight=0.1)
+    assert model.scene_type == "object" and model.occlusion_active
+
+
+def test_scene_type_override_wins_and_drives_novel_rays_and_occlusion(procedural_scene, tmp_path):
+    manager = manager_for(procedural_scene, scene_type="360", sparse_cache_dir=tmp_path)
+    assert manager.scene_type == "360" and manager.novel_cameras is None
+    _, batch = manager.next_train(0)
+    assert batch["num_novel_rays"] == 0
+    model = model_for(manager, occlusion_weight=0.1)
+    assert not model.occlusion_active  # occlusion is for object scenes only
+    forward = manager_for(procedural_scene, scene_type="forward-facing", sparse_cache_dir=tmp_path)
+    assert forward.novel_cameras is not None and not model_for(forward, occlusion_weight=0.1).occlusion_active
+
+
+def test_auto_grid_sizes_the_final_grid_from_the_training_pixels(procedural_scene, tmp_path):
+    manager = manager_for(procedural_scene, sparse_cache_dir=tmp_path)
+    pixels = manager.train_dataset.metadata["frugalnerf_scene"]["num_train_pixels"]
+    fixed = model_for(manager)
+    assert fixed.final_voxels == 24**3 and fixed.upsample_voxels[-1] == 24**3
+    auto = model_for(manager, auto_grid=True)
+    assert auto.final_voxels == grid_side_for_pixels(pixels) ** 3 != 24**3
+    assert auto.upsample_voxels[-1] == auto.final_voxels
+
+
+def test_ns_train_prints_the_scene_summary(procedural_scene, tmp_path):
+    result = subprocess.run(
+        [str(Path(sys.executable).parent / "ns-train"), "frugalnerf-tiny", "--data", str(procedural_scene),
+         "--output-dir", str(tmp_path), "--max-num-iterations", "2", "--vis", "tensorboard",
+         "--pipeline.model.auto-grid", "True", "--pipeline.datamanager.scene-type", "360"],
+        capture_output=True, text=True, timeout=300, env={"COLUMNS": "250", "PATH": "/usr/bin:/bin"},
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    summary = result.stdout[result.stdout.index("frugalnerf scene:"):]
+    assert "frugalnerf scene: 360 (set by --pipeline.datamanager.scene-type" in summary
+    assert "(auto: " in summary and "training pixels)" in summary
+    assert "novel rays off (360 scene)" in summary
