@@ -159,8 +159,8 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         self.scene_layout = self._scene_layout(cameras)
         if len(centers) < 2:
             CONSOLE.print(
-                "[bold yellow]frugalnerf: one training view: geometric adaptation needs two, so training goes on "
-                "without it (colour loss and regularisers only)."
+                "[bold yellow]frugalnerf: one training view: training rays have no other view to warp into, so "
+                "geometric adaptation runs on novel-view rays only (warped into the one view); no sparse depth."
             )
         self.train_ray_generator = RayGenerator(cameras.to(self.device))
         # Not used for sampling (patches are), but nerfstudio's tools set the batch size through it

@@ -64,7 +64,12 @@ def scene_summary(datamanager, model) -> str:
         occlusion = "off (weight 0)"
     else:
         occlusion = "on" if model.occlusion_active else "off (not an object scene)"
-    geo = "on" if cfg.geo_weight > 0 and views >= 2 else ("off (one view)" if views < 2 else "off (weight 0)")
+    if cfg.geo_weight <= 0:
+        geo = "off (weight 0)"
+    elif views < 2:
+        geo = "novel rays only (one view)" if datamanager.novel_cameras is not None else "off (one view, no novel rays)"
+    else:
+        geo = "on"
     return (
         f"frugalnerf scene: {datamanager.scene_type} ({detected}: views within {layout.spread_degrees:.1f} deg of their "
         f"mean, cameras cover {layout.coverage_degrees:.0f} deg around the focus); {views} training views\n"

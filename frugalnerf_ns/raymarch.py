@@ -61,6 +61,10 @@ def march_steps(
     return t, inside
 
 
+MAX_OPTICAL_DEPTH = 1e3
+"""Largest optical depth sigma * delta of one sample: its alpha is 1 to every dtype's precision."""
+
+
 class Composited(NamedTuple):
     weights: Float[Tensor, "rays samples"]
     accumulation: Float[Tensor, "rays 1"]
@@ -80,12 +84,23 @@ def composite_weights(
     Depth is the expected termination distance normalised by the accumulated weight, clamped into the ray's
     segment so that a ray that hits nothing still reports a finite depth inside the box.
     """
+    # Half-precision inputs (autocast) are composited in float32, as autocast itself does for exp and
+    # cumsum: a near-empty ray's depth gradient ~ t / eps overflows float16, and bfloat16's 8-bit mantissa
+    # makes the transmittance sum drift. Outputs come back in float32 then; float64 stays float64.
+    compute = torch.promote_types(densities.dtype, torch.float32)
+    densities, t = densities.to(compute), t.to(compute)
+    if t_near is not None and t_far is not None:
+        t_near, t_far = t_near.to(compute), t_far.to(compute)
     deltas = torch.full_like(densities, step * distance_scale)
-    optical = (densities * deltas).clamp_min(0.0)
+    # The cap maps an overflowed (+inf) optical depth, e.g. a density of 1e6 in float16, to a finite one;
+    # exp(-MAX_OPTICAL_DEPTH) is exactly 0 in every dtype, so results below the cap are unchanged.
+    optical = (densities * deltas).clamp(0.0, MAX_OPTICAL_DEPTH)
     alpha = 1.0 - torch.exp(-optical)
-    # Exclusive cumulative transmittance computed in log space: a product of many (1 - alpha) factors
-    # underflows in float16, a sum of optical depths does not.
-    log_transmittance = -torch.cumsum(optical, dim=-1) + optical
+    # Exclusive cumulative transmittance in log space: a product of many (1 - alpha) factors underflows in
+    # float16, a sum of optical depths does not. Shifting the inclusive sum (rather than subtracting each
+    # sample's own term from it) avoids cancellation: after a large optical depth, sum - own loses the
+    # small remainder in float32 and the weights add up to more than 1.
+    log_transmittance = -torch.cumsum(torch.cat([torch.zeros_like(optical[..., :1]), optical[..., :-1]], dim=-1), dim=-1)
     weights = alpha * torch.exp(log_transmittance)
     accumulation = weights.sum(dim=-1, keepdim=True)
     eps = torch.finfo(weights.dtype).eps
