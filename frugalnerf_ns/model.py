@@ -22,6 +22,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerCheckbox
 from torch import Tensor, nn
 from torch.nn import Parameter
+from torch.profiler import record_function
 
 from frugalnerf_ns import losses
 from frugalnerf_ns.color_mlp import MLPImplementation
@@ -372,7 +373,8 @@ class FrugalNeRFModel(Model):
         elif not self.training and not self.viewer_lower_scales.value:
             num_scales = 1
         for scale in range(num_scales):
-            render = self.render_scale(origins, directions, scale, background, segments)
+            with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (scripts/profile_step.py)
+                render = self.render_scale(origins, directions, scale, background, segments)
             suffix = scale_suffix(scale)
             outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)
             depth = render.depth
@@ -436,7 +438,8 @@ class FrugalNeRFModel(Model):
         num_train = target.shape[0]
         predictions = [outputs[f"rgb{scale_suffix(s)}"][:num_train] for s in range(self.field.num_scales)]
         loss_dict = {"rgb_loss": losses.multiscale_color_loss(predictions, target, self._scale_weights())}
-        loss_dict.update(self._regularizers(outputs))
+        with record_function("regularizers"):
+            loss_dict.update(self._regularizers(outputs))
         loss_dict.update(self._extra_losses(outputs, batch))
         return loss_dict
 
@@ -530,21 +533,22 @@ class FrugalNeRFModel(Model):
         target = self._target_rgb(batch["image"].to(self.device), torch.ones(3, device=self.device))
         source = torch.cat([target, outputs["rgb"][num_train:end].detach()])  # Eq. 6: novel rays use the render
         scales = range(self.field.num_scales)
-        result = cross_scale_geometric_adaptation(
-            outputs["ray_origins"][:end],
-            outputs["ray_directions"][:end],
-            torch.stack([outputs[f"depth{scale_suffix(s)}"][:end, 0] for s in scales]),
-            torch.stack([outputs[f"render_depth{scale_suffix(s)}"][:end, 0] for s in scales]),
-            source,
-            batch["nearest_view"],
-            num_train,
-            batch["patch_size"],
-            batch["warp_images"],
-            batch["warp_camera_to_worlds"],
-            batch["warp_intrinsics"],
-            self.config.reprojection_threshold,
-            self.config.reprojection_error,
-        )
+        with record_function("geometric_adaptation"):
+            result = cross_scale_geometric_adaptation(
+                outputs["ray_origins"][:end],
+                outputs["ray_directions"][:end],
+                torch.stack([outputs[f"depth{scale_suffix(s)}"][:end, 0] for s in scales]),
+                torch.stack([outputs[f"render_depth{scale_suffix(s)}"][:end, 0] for s in scales]),
+                source,
+                batch["nearest_view"],
+                num_train,
+                batch["patch_size"],
+                batch["warp_images"],
+                batch["warp_camera_to_worlds"],
+                batch["warp_intrinsics"],
+                self.config.reprojection_threshold,
+                self.config.reprojection_error,
+            )
         outputs["geo_adaptation"] = result  # type: ignore[assignment]
         return result
 

@@ -65,8 +65,9 @@ def render_test_rgb(model, camera, mask: Optional[torch.Tensor]) -> torch.Tensor
         return rgb
 
 
-def evaluate_run(config_path: Path) -> Dict[str, float]:
-    """Test-view PSNR / SSIM / LPIPS of a trained run (masked where the dataparser gives eval masks)."""
+def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, float]:
+    """Test-view PSNR / SSIM / LPIPS of a trained run (masked where the dataparser gives eval masks), at its
+    latest checkpoint or at the checkpoint of ``step``."""
     from nerfstudio.utils.eval_utils import eval_setup
     from torchmetrics.functional import structural_similarity_index_measure as ssim
 
@@ -74,7 +75,11 @@ def evaluate_run(config_path: Path) -> Dict[str, float]:
     from frugalnerf_ns.model import masked_image_metrics
 
     patch_torchmetrics_lpips()
-    _, pipeline, _, _ = eval_setup(config_path, test_mode="test")
+    def at_step(config):
+        config.load_step = step
+        return config
+
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=at_step if step is not None else None)
     dataset = pipeline.datamanager.eval_dataset
     masks = dataset.metadata.get("eval_mask_filenames")
     lpips = OfflineLPIPS().to(pipeline.device)
@@ -97,7 +102,7 @@ def evaluate_run(config_path: Path) -> Dict[str, float]:
 
 def main() -> None:
     if len(sys.argv) < 2 or sys.argv[1] not in ("train", "eval"):
-        sys.exit("usage: python -m frugalnerf_ns.offline_tools train <ns-train args> | eval <config.yml>")
+        sys.exit("usage: python -m frugalnerf_ns.offline_tools train <ns-train args> | eval <config.yml> [step ...]")
     command, rest = sys.argv[1], sys.argv[2:]
     if command == "train":
         patch_torchmetrics_lpips()
@@ -106,7 +111,10 @@ def main() -> None:
         sys.argv = ["ns-train", *rest]
         entrypoint()
     else:
-        print("RESULT " + json.dumps(evaluate_run(Path(rest[0]))))
+        # One line per checkpoint step asked for (the latest without steps), in one process: nerfstudio's
+        # start-up costs more than scoring a few small test views.
+        for step in [int(s) for s in rest[1:]] or [None]:
+            print("RESULT " + json.dumps(evaluate_run(Path(rest[0]), step) | {"step": step}), flush=True)
 
 
 if __name__ == "__main__":

@@ -306,15 +306,21 @@ def test_ten_thousand_iterations_do_not_drift_to_nan(procedural_scene, tmp_path)
 
     manager = manager_for(procedural_scene, sparse_cache_dir=tmp_path, train_num_rays_per_batch=72,
                           num_novel_rays_per_batch=16, num_sparse_rays_per_batch=0)
-    model = tiny_model(manager, initial_voxels=12**3, final_voxels=12**3, appearance_components=(4, 2, 2))
+    model = tiny_model(manager, initial_voxels=12**3, final_voxels=12**3, appearance_components=(4, 2, 2),
+                       lower_scale_color_weight=1.0)
     model.train()
     optimizer = torch.optim.Adam(model.parameters(), lr=0.02, betas=(0.9, 0.99))
+    history = []
     for step in range(10_000):
         bundle, batch = manager.next_train(step)
         loss_dict, loss = total_loss(model, bundle, batch)
         assert bool(torch.isfinite(loss)), (step, {k: float(v) for k, v in loss_dict.items()})
+        history.append(float(loss_dict["rgb_loss"]))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
     assert all(finite(p) for p in model.parameters())
-    assert float(loss_dict["rgb_loss"]) < 0.1
+    # It learned and stayed learned: the colour loss of the last 500 steps is below that of the first 100
+    # and no worse than around step 2000 (no slow divergence). Batches of 72 rays are noisy: averages.
+    first, middle, last = (sum(history[a:b]) / (b - a) for a, b in ((0, 100), (1750, 2250), (9500, 10_000)))
+    assert last < 0.8 * first and last <= 1.1 * middle, (first, middle, last)

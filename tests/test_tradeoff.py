@@ -1,0 +1,79 @@
+"""The speed/accuracy scripts end to end on the procedural scene: tradeoff.py (table, JSON, both plots) and model_size.py."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).parents[1] / "scripts" / "tradeoff.py"
+
+
+def load_script():
+    sys.path.insert(0, str(SCRIPT.parent))
+    import tradeoff
+
+    return tradeoff
+
+
+def test_budget_args_scale_the_whole_step_schedule():
+    args = load_script().budget_args("frugalnerf-cpu", 500)  # preset: 1500 iterations
+    joined = " ".join(args)
+    assert "--max-num-iterations 500" in joined
+    assert "--pipeline.model.upsample-iters 50 100 150 200 250" in joined
+    assert "--pipeline.model.alpha-mask-iters 167 333" in joined
+    assert "--optimizers.encodings.scheduler.max-steps 500" in joined and "--optimizers.fields.scheduler.max-steps 500" in joined
+
+
+def test_pareto_front_keeps_only_undominated_runs():
+    tradeoff = load_script()
+    points = [{"run": "a", "seconds": 1, "psnr": 10, "lpips": 0.5}, {"run": "b", "seconds": 2, "psnr": 9, "lpips": 0.4},
+              {"run": "c", "seconds": 3, "psnr": 12, "lpips": 0.6}]
+    assert [p["run"] for p in tradeoff.pareto_front(points, "psnr", True)] == ["a", "c"]
+    assert [p["run"] for p in tradeoff.pareto_front(points, "lpips", False)] == ["a", "b"]
+
+
+def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tmp_path):
+    out = tmp_path / "tradeoff"
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT), "--data", str(procedural_scene), "--parser", "frugal-nerfstudio --center-method focus",
+         "--presets", "frugalnerf-tiny", "--budgets", "20", "--scales", "0", "--scales-budget", "20",
+         "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
+        capture_output=True, text=True, timeout=900,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = json.loads((out / "tradeoff.json").read_text())
+    runs = {row["run"] for row in rows}
+    assert runs == {"frugalnerf-tiny/20", "frugalnerf-tiny/20/L=0", "tensorf/10"}
+    anytime = sorted(row["step"] for row in rows if row["run"] == "frugalnerf-tiny/20")
+    assert anytime == [11, 20]  # a checkpoint every 10 steps and the last one
+    for row in rows:
+        assert 0 < row["seconds"] < 900 and 0 < row["psnr"] < 60 and 0 <= row["lpips"] <= 1 and row["checkpoint_mb"] > 0
+    times = [row["seconds"] for row in rows if row["run"] == "frugalnerf-tiny/20"]
+    assert times == sorted(times)  # later checkpoints come later
+    table = (out / "tradeoff.md").read_text().splitlines()
+    assert table[0].startswith("| run | step | wall time | PSNR") and len(table) == 2 + len(rows)
+    for name in ("pareto.png", "anytime.png"):
+        from PIL import Image
+
+        with Image.open(out / name) as image:
+            assert image.format == "PNG" and min(image.size) > 300
+
+
+def test_model_size_script_measures_fixed_and_auto_grids(procedural_scene, tmp_path):
+    out = tmp_path / "sizes.json"
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT.parent / "model_size.py"), "--data", str(procedural_scene), "--parser",
+         "frugal-nerfstudio --center-method focus", "--presets", "frugalnerf-tiny", "--auto-grid", "--out", str(out)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    fixed, auto = json.loads(out.read_text())
+    assert fixed["preset"] == "frugalnerf-tiny" and auto["preset"] == "frugalnerf-tiny + auto-grid"
+    assert fixed["grid"] == "47x47x47"  # the preset's 48^3 voxels in the procedural scene's box
+    assert fixed["grid"] != auto["grid"]
+    for row in (fixed, auto):
+        # The field is what grows with the grid; the checkpoint holds it plus the LPIPS network.
+        assert 0 < row["field_mb"] < row["checkpoint_mb"] and row["peak_rss_mib"] > 100 and row["rays"] > 0
+    assert "| frugalnerf-tiny + auto-grid | " in result.stdout
