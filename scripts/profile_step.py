@@ -2,6 +2,7 @@
 
   python scripts/profile_step.py --data ../shared/data/llff/fern [--preset frugalnerf-cpu] [--steps 5]
          [--at-final-grid] [--out outputs/profile_step.json]
+  python scripts/profile_step.py --load-config <run>/config.yml     # a trained run: its grid and alpha mask
 
 Builds the preset's pipeline on the data (training split, as ns-train does), optionally upsamples the grid
 to the preset's final size first (the steady state of most of training), runs two warm-up steps, then
@@ -24,6 +25,12 @@ STAGES = ("data", "forward", "render_scale0", "render_scale1", "render_scale2", 
 
 
 def build_pipeline(args):
+    if args.load_config:
+        from nerfstudio.utils.eval_utils import eval_setup
+
+        # "val" sets the datamanager up for training (patches, novel and sparse-depth rays).
+        _, pipeline, _, _ = eval_setup(args.load_config, test_mode="val")
+        return pipeline
     from frugalnerf_ns.field import resolution_for_voxels
     from frugalnerf_ns.presets import build_trainer_config
 
@@ -42,7 +49,8 @@ def build_pipeline(args):
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--data", type=Path, help="scene folder (a fresh model of --preset)")
+    parser.add_argument("--load-config", type=Path, help="config.yml of a trained run (instead of --data)")
     parser.add_argument("--preset", default="frugalnerf-cpu")
     parser.add_argument("--train-views", type=int, nargs="*", help="training view indices (default: the scene's split)")
     parser.add_argument("--steps", type=int, default=5)
@@ -50,8 +58,9 @@ def main(argv=None) -> None:
     parser.add_argument("--rows", type=int, default=15, help="operators listed")
     parser.add_argument("--out", type=Path, default=Path("outputs/profile_step.json"))
     args = parser.parse_args(argv)
-    if not args.data.exists():
-        parser.error(f"--data {args.data} does not exist")
+    source = args.load_config or args.data
+    if source is None or not source.exists():
+        parser.error(f"give an existing --data or --load-config (got {source})")
 
     pipeline = build_pipeline(args)
     model = pipeline.model
@@ -84,7 +93,7 @@ def main(argv=None) -> None:
     operators = sorted((e for e in averages if e.key not in STAGES and not e.key.startswith("ProfilerStep")),
                        key=lambda e: e.self_cpu_time_total, reverse=True)[: args.rows]
     resolution = tuple(model.field.density_grid.resolution.tolist())
-    print(f"{args.preset} on {args.data.name}: grid {resolution}, {seconds:.3f} s/step under the profiler")
+    print(f"{args.load_config or args.preset + ' on ' + args.data.name}: grid {resolution}, {seconds:.3f} s/step under the profiler")
     print("| stage | s/step | share |\n|---|---|---|")
     for name in STAGES:
         if name in stages:
@@ -96,7 +105,7 @@ def main(argv=None) -> None:
         rows.append({"operator": e.key, "self_seconds": self_seconds, "calls": e.count / args.steps})
         print(f"| {e.key} | {self_seconds:.3f} | {self_seconds / seconds:.0%} | {e.count / args.steps:.0f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"preset": args.preset, "data": str(args.data), "grid": resolution,
+    args.out.write_text(json.dumps({"preset": args.preset, "source": str(source), "grid": resolution,
                                     "seconds_per_step": seconds, "stages": stages, "operators": rows}, indent=2))
     print(f"wrote {args.out}")
 

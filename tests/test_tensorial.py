@@ -124,3 +124,25 @@ def test_alpha_mask_and_shrink_fit_the_occupied_region():
     field.shrink(box)
     assert field.aabb[0, 0] >= -0.1 and field.aabb[1, 0] == pytest.approx(1.0)
     assert field.density_grid.resolution_tuple[0] < 21
+
+
+@pytest.mark.parametrize("shape", [(1, 5, 7, 9), (1, 3, 6, 1), (1, 2, 1, 4), (1, 4, 1, 1)])
+def test_cpu_sampling_matches_grid_sample_values_and_gradients(shape):
+    """The CPU backward (index_add over four corners) equals grid_sample's, border and strided views included."""
+    import torch.nn.functional as F
+
+    from frugalnerf_ns.tensorial import sample_plane
+
+    torch.manual_seed(0)
+    full = torch.randn(shape[0], shape[1], shape[2] * 2, shape[3] * 2, dtype=torch.float64, requires_grad=True)
+    plane = full[:, :, ::2, ::2]  # a strided scale view, as the lower scales read
+    coords = torch.cat([torch.rand(200, 2, dtype=torch.float64) * 2.4 - 1.2,  # beyond the border too
+                        torch.tensor([[-1.0, -1.0], [1.0, 1.0], [1.0, -1.0], [0.0, 1.0]], dtype=torch.float64)])
+    weights = torch.randn(shape[1], len(coords), dtype=torch.float64)
+    ours = sample_plane(plane, coords[:, 0], coords[:, 1])
+    (ours * weights).sum().backward()
+    ours_grad, full.grad = full.grad.clone(), None
+    reference = F.grid_sample(plane, coords.view(1, -1, 1, 2), mode="bilinear", padding_mode="border", align_corners=True)
+    (reference.view(shape[1], -1) * weights).sum().backward()
+    assert torch.allclose(ours, reference.view(shape[1], -1), atol=1e-12)
+    assert torch.allclose(ours_grad, full.grad, atol=1e-12)
