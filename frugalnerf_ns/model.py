@@ -20,7 +20,7 @@ from nerfstudio.models.base_model import Model, ModelConfig
 from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerCheckbox
-from torch import Tensor, nn
+from torch import Tensor
 from torch.nn import Parameter
 from torch.profiler import record_function
 

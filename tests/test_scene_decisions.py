@@ -4,8 +4,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-import torch
 
 from frugalnerf_ns.model import FrugalNeRFModelConfig
 from frugalnerf_ns.scene_analysis import grid_side_for_pixels
