@@ -26,6 +26,7 @@ from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.pixel_samplers import PixelSamplerConfig
+from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
@@ -34,7 +35,14 @@ from torch import Tensor
 from frugalnerf_ns.data import DataError
 from frugalnerf_ns.mono_depth import load_or_predict
 from frugalnerf_ns.novel_views import nearest_training_views, spiral_focus_depth, spiral_poses
-from frugalnerf_ns.scene_analysis import CameraLayout, SceneType, classify_camera_layout, has_plain_background
+from frugalnerf_ns.scene_analysis import (
+    CameraLayout,
+    SceneType,
+    classify_camera_layout,
+    fit_scene_box,
+    has_plain_background,
+    seen_region_box,
+)
 from frugalnerf_ns.sparse_points import (
     SparseDepth,
     TriangulationOptions,
@@ -114,6 +122,15 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     scene_type: Literal["auto", "forward-facing", "object", "360"] = "auto"
     """What the scene is; auto detects it from the training cameras (and an object mask or plain
     background). 360 scenes get no spiral novel rays; only object scenes get the occlusion loss."""
+    fit_scene_box: bool = True
+    """Shrink a metric scene box (not NDC) to the part of it the training cameras see, joined with the sparse
+    points and widened by a margin, so the grid's voxels go where the views constrain the scene. False
+    keeps the dataparser's box."""
+    fit_box_min_views: int = 1
+    """A region is kept when at least this many training cameras see it (1: nothing a training view shows
+    is cut; 2: only what two views constrain, smaller but test views may see past it)."""
+    fit_box_margin: float = 0.05
+    """Margin added on every side of the fitted box, as a fraction of its size."""
 
 
 NOVEL_PATCH = 2  # novel-view rays come in 2x2 patches for the depth smoothness loss
@@ -177,6 +194,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         if self.test_mode == "val" and self.config.sparse_depth and self.config.num_sparse_rays_per_batch > 0:
             if len(centers) >= 2:
                 self.sparse = self._sparse_points(cameras)
+        self.fitted_box = self._fit_scene_box(cameras)
         model_path = getattr(self.config, "mono_depth_model", None)
         if self.test_mode == "val" and model_path is not None:
             self.mono_depth = self._mono_depth(Path(model_path))
@@ -195,6 +213,30 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             "num_train_pixels": int(self.train_images.shape[0] * self.train_images.shape[1] * self.train_images.shape[2]),
         }
         return layout
+
+    def _fit_scene_box(self, cameras: Cameras) -> Optional[Tensor]:
+        """Shrink the training dataset's scene box (the one the model is built in) to what the training
+        views see and the sparse points; returns the dataparser's box it replaced, or None when unchanged.
+
+        Only metric boxes: an NDC box already spans exactly the forward-facing frustum. A resumed or loaded
+        run takes its box from the checkpoint (the field's aabb buffer), whatever is fitted here."""
+        metadata = self.train_dataparser_outputs.metadata or {}
+        if not getattr(self.config, "fit_scene_box", False) or metadata.get("ndc") is not None:
+            return None
+        box = self.train_dataset.scene_box.aabb.float()
+        intrinsics = self.warp_intrinsics.cpu()
+        height, width = self.warp_images.shape[1:3]
+        near_far = metadata.get("near_far")
+        seen = seen_region_box(
+            box, cameras.camera_to_worlds.cpu(), intrinsics, (width, height),
+            None if near_far is None else (float(near_far[0]), float(near_far[1])), self.config.fit_box_min_views,
+        )
+        points = None if self.sparse is None else self.sparse.points.cpu()
+        fitted = fit_scene_box(box, seen, points, self.config.fit_box_margin)
+        if torch.equal(fitted, box):
+            return None
+        self.train_dataset.scene_box = SceneBox(aabb=fitted)
+        return box
 
     def _cache_path(self, kind: str) -> Path:
         """Cache file for this training split and image size, in frugalnerf_cache next to the data (or

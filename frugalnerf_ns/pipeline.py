@@ -41,8 +41,18 @@ def scene_summary(datamanager, model) -> str:
     if model.ndc is not None:
         space = "NDC (forward-facing, the data's near/far bounds)"
     else:
-        size = (model.field.aabb[1] - model.field.aabb[0]).tolist()
-        space = "bounded box " + " x ".join(f"{v:.3g}" for v in size)
+        size = model.field.aabb[1] - model.field.aabb[0]
+        space = "bounded box " + " x ".join(f"{v:.3g}" for v in size.tolist())
+        original = getattr(datamanager, "fitted_box", None)
+        if original is not None:
+            share = float(size.prod() / (original[1] - original[0]).prod())
+            points = "" if datamanager.sparse is None else " and the sparse points"
+            space += (
+                f" (fitted to what the training views see{points}: {share:.0%} of the dataparser's box; "
+                "--pipeline.datamanager.fit-scene-box False keeps it)"
+            )
+        elif getattr(dm, "fit_scene_box", False):
+            space += " (the training views see all of the dataparser's box)"
     side = round(model.final_voxels ** (1 / 3))
     pixels = (model.kwargs.get("metadata") or {}).get("frugalnerf_scene", {}).get("num_train_pixels", 0)
     grid = f"{side}^3 final grid " + (

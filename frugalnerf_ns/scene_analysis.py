@@ -10,11 +10,13 @@ training images can actually resolve.
 from __future__ import annotations
 
 import math
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, Optional, Tuple
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
+
+from frugalnerf_ns.reprojection import project_to_camera
 
 SceneType = Literal["forward-facing", "object", "360"]
 SCENE_TYPES = ("forward-facing", "object", "360")
@@ -141,3 +143,63 @@ def grid_side_for_pixels(num_train_pixels: int, side_per_pixel_root: float = PAP
     """Grid side (voxels along the longest axis of a cube) scaled to the training pixels (paper ratio)."""
     side = side_per_pixel_root * math.sqrt(max(1, num_train_pixels))
     return int(min(max_side, max(min_side, round(side))))
+
+
+def seen_region_box(
+    box: Float[Tensor, "2 3"],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    image_size: Tuple[int, int],
+    near_far: Optional[Tuple[float, float]] = None,
+    min_views: int = 1,
+    samples_per_axis: int = 64,
+) -> Optional[Float[Tensor, "2 3"]]:
+    """Bounding box of the part of ``box`` that at least ``min_views`` training cameras see.
+
+    The box is sampled at cell centres; a sample is seen by a camera when it projects inside the image
+    (``image_size`` = width, height) in front of the camera, and between the near and far bounds when they
+    are known. The result grows by half a cell so that the cells of the kept samples are whole. None when
+    no sample is seen (cameras looking away from the box).
+    """
+    box = box.double()
+    width, height = image_size
+    steps = [(torch.arange(samples_per_axis, dtype=torch.float64) + 0.5) / samples_per_axis for _ in range(3)]
+    grid = torch.stack(torch.meshgrid(*steps, indexing="ij"), dim=-1).reshape(-1, 3)
+    points = box[0] + grid * (box[1] - box[0])
+    seen = torch.zeros(len(points), dtype=torch.long)
+    for c2w, k in zip(camera_to_worlds.double(), intrinsics.double()):
+        proj = project_to_camera(points, c2w, k)
+        u, v = proj.pixels.unbind(-1)
+        visible = proj.in_front & (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
+        if near_far is not None:
+            visible &= (proj.depth >= near_far[0]) & (proj.depth <= near_far[1])
+        seen += visible.long()
+    kept = points[seen >= min(min_views, len(camera_to_worlds))]
+    if len(kept) == 0:
+        return None
+    half_cell = (box[1] - box[0]) / (2 * samples_per_axis)
+    return torch.stack([kept.min(0).values - half_cell, kept.max(0).values + half_cell]).clamp(box[0], box[1]).float()
+
+
+def fit_scene_box(
+    box: Float[Tensor, "2 3"],
+    seen_box: Optional[Float[Tensor, "2 3"]],
+    points: Optional[Float[Tensor, "points 3"]] = None,
+    margin: float = 0.05,
+) -> Float[Tensor, "2 3"]:
+    """The dataparser's ``box`` shrunk to what the training views can constrain: the seen region
+    (``seen_region_box``) joined with the sparse points inside ``box``, widened by ``margin`` of its size
+    on every side and never beyond ``box``. ``box`` itself when nothing is known."""
+    parts = [] if seen_box is None else [seen_box.double()]
+    if points is not None and len(points) > 0:
+        lo, hi = box[0].double(), box[1].double()
+        inside = points.double()[((points.double() >= lo) & (points.double() <= hi)).all(dim=-1)]
+        if len(inside) > 0:
+            parts.append(torch.stack([inside.min(0).values, inside.max(0).values]))
+    if not parts:
+        return box.clone()
+    lower = torch.stack([p[0] for p in parts]).min(0).values
+    upper = torch.stack([p[1] for p in parts]).max(0).values
+    pad = (upper - lower) * margin
+    fitted = torch.stack([lower - pad, upper + pad])
+    return torch.stack([torch.maximum(fitted[0], box[0].double()), torch.minimum(fitted[1], box[1].double())]).to(box.dtype)

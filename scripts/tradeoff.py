@@ -1,15 +1,16 @@
 """Speed vs accuracy on one scene and split: presets x iteration budgets, the number of scales, and tensorf.
 
   python scripts/tradeoff.py --scene fern [--presets frugalnerf-cpu] [--budgets 500 1500]
-         [--scales 0 1 2 3] [--scales-budget 500] [--anytime-every 500] [--tensorf-iterations 1500]
-         [--out outputs/tradeoff]
+         [--scales 0 1 2 3] [--scales-budget 500] [--grid-sides auto 320] [--anytime-every 500]
+         [--tensorf-iterations 1500] [--out outputs/tradeoff]
   python scripts/tradeoff.py --data <scene dir> --parser "frugal-nerfstudio --center-method focus" ...
 
 Every FrugalNeRF run scales its preset's step schedule (upsampling, alpha mask, learning-rate decay) to its
 budget and saves a checkpoint every ``--anytime-every`` steps; each checkpoint is scored on the test views
 afterwards (``offline_tools eval``), and its wall time is the time from the start of ``ns-train`` (set-up,
 triangulation and all) to that checkpoint's file. ``--scales`` runs the first preset with L = 0..3 lower
-scales (the paper's ablation) at ``--scales-budget``; tensorf (nerfstudio's) runs on the same views as the
+scales (the paper's ablation) at ``--scales-budget``, and ``--grid-sides`` runs it with each final grid
+(``auto``: sized from the training pixels, ``--pipeline.model.auto-grid``; a number N: N^3 voxels); tensorf (nerfstudio's) runs on the same views as the
 reference. Writes ``tradeoff.md`` (table), ``tradeoff.json``, ``pareto.png`` (final test PSNR and LPIPS vs
 wall time, Pareto front marked) and ``anytime.png`` (test PSNR vs wall time during training).
 """
@@ -170,6 +171,8 @@ def main(argv=None) -> None:
     parser.add_argument("--budgets", type=int, nargs="+", default=[500, 1500], help="iteration budgets")
     parser.add_argument("--scales", type=int, nargs="*", default=[0, 1, 2, 3], help="numbers of lower scales L")
     parser.add_argument("--scales-budget", type=int, default=500, help="iterations of the L sweep")
+    parser.add_argument("--grid-sides", nargs="*", default=[],
+                        help="final grid sides for the first preset at --scales-budget: 'auto' or N (N^3 voxels)")
     parser.add_argument("--anytime-every", type=int, default=500, help="steps between scored checkpoints")
     parser.add_argument("--tensorf-iterations", type=int, default=1500, help="0 skips the tensorf reference")
     parser.add_argument("--tensorf-rays", type=int, default=1024)
@@ -208,6 +211,11 @@ def main(argv=None) -> None:
         extra = budget_args(presets[0], args.scales_budget) + ["--pipeline.model.num-lower-scales", str(lower)]
         runs.append(train(f"{presets[0]}/{args.scales_budget}/L={lower}", presets[0], data, parser_args, extra,
                           args.scales_budget, args.out))
+    for side in args.grid_sides:
+        grid = ["--pipeline.model.auto-grid", "True"] if side == "auto" else [
+            "--pipeline.model.auto-grid", "False", "--pipeline.model.final-voxels", str(int(side) ** 3)]
+        runs.append(train(f"{presets[0]}/{args.scales_budget}/grid={side}", presets[0], data, parser_args,
+                          budget_args(presets[0], args.scales_budget) + grid, args.scales_budget, args.out))
     if args.tensorf_iterations > 0:
         extra = ["--max-num-iterations", str(args.tensorf_iterations), "--pipeline.datamanager.train-num-rays-per-batch",
                  str(args.tensorf_rays)]

@@ -8,9 +8,11 @@ import torch
 from frugalnerf_ns.scene_analysis import (
     PAPER_GRID_SIDE_PER_PIXEL_ROOT,
     classify_camera_layout,
+    fit_scene_box,
     focus_point,
     grid_side_for_pixels,
     has_plain_background,
+    seen_region_box,
 )
 
 
@@ -93,3 +95,53 @@ def test_grid_side_scales_with_the_square_root_of_the_training_pixels():
     assert fern_eighth == round(PAPER_GRID_SIDE_PER_PIXEL_ROOT * math.sqrt(2 * 504 * 378)) == 320
     assert grid_side_for_pixels(4 * 504 * 378) > fern_eighth
     assert grid_side_for_pixels(10) == 32 and grid_side_for_pixels(10**9) == 640  # clamped
+
+
+# A camera at z = 3 looking down -z with a 100 x 100 image and focal 400: half-width 0.125 per unit depth.
+BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+K = torch.tensor([[400.0, 400.0, 50.0, 50.0]])
+
+
+def camera_at(x, z=3.0):
+    return look_at((x, 0.0, z), (x, 0.0, z - 1.0))[None, :3].float()
+
+
+def test_seen_region_is_the_frustum_inside_the_box():
+    box = seen_region_box(BOX, camera_at(0.0), K, (100, 100), samples_per_axis=64)
+    cell = 2.0 / 64
+    # The frustum is widest at the far face of the box (depth 4): x, y within +-0.5.
+    assert torch.allclose(box[:, :2], torch.tensor([[-0.5, -0.5], [0.5, 0.5]]), atol=cell)
+    assert torch.allclose(box[:, 2], BOX[:, 2])
+    near_far = seen_region_box(BOX, camera_at(0.0), K, (100, 100), near_far=(2.5, 3.5))
+    assert torch.allclose(near_far[:, 2], torch.tensor([-0.5, 0.5]), atol=cell)
+    assert float(near_far[1, 0]) < float(box[1, 0])  # nearer far bound: narrower frustum
+
+
+def test_min_views_keeps_the_union_or_the_overlap():
+    cameras = torch.cat([camera_at(-0.4), camera_at(0.4)])
+    intrinsics = K.expand(2, 4)
+    union = seen_region_box(BOX, cameras, intrinsics, (100, 100), min_views=1)
+    overlap = seen_region_box(BOX, cameras, intrinsics, (100, 100), min_views=2)
+    cell = 2.0 / 64
+    assert torch.allclose(union[:, 0], torch.tensor([-0.9, 0.9]), atol=cell)
+    assert torch.allclose(overlap[:, 0], torch.tensor([-0.1, 0.1]), atol=cell)
+    # More views asked than exist: every camera must see it.
+    assert torch.equal(seen_region_box(BOX, cameras, intrinsics, (100, 100), min_views=5), overlap)
+
+
+def test_cameras_looking_away_leave_the_box_alone():
+    away = look_at((0.0, 0.0, 3.0), (0.0, 0.0, 4.0))[None, :3].float()
+    assert seen_region_box(BOX, away, K, (100, 100)) is None
+    assert torch.equal(fit_scene_box(BOX, None), BOX)
+
+
+def test_fitted_box_joins_points_adds_margin_and_stays_in_the_box():
+    seen = torch.tensor([[-0.5, -0.5, -1.0], [0.5, 0.5, 1.0]])
+    assert torch.allclose(fit_scene_box(BOX, seen, margin=0.0), seen)
+    widened = fit_scene_box(BOX, seen, margin=0.1)
+    assert torch.allclose(widened[:, 0], torch.tensor([-0.6, 0.6])) and torch.equal(widened[:, 2], BOX[:, 2])
+    points = torch.tensor([[0.8, 0.0, 0.0], [5.0, 5.0, 5.0]])  # the second lies outside the box: ignored
+    joined = fit_scene_box(BOX, seen, points, margin=0.0)
+    assert torch.allclose(joined[1], torch.tensor([0.8, 0.5, 1.0]))
+    only_points = fit_scene_box(BOX, None, torch.tensor([[0.1, 0.2, 0.3], [0.2, 0.3, 0.4]]), margin=0.0)
+    assert torch.allclose(only_points, torch.tensor([[0.1, 0.2, 0.3], [0.2, 0.3, 0.4]]))

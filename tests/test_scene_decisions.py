@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import torch
 
 from frugalnerf_ns.model import FrugalNeRFModelConfig
 from frugalnerf_ns.scene_analysis import grid_side_for_pixels
@@ -64,3 +65,18 @@ def test_ns_train_prints_the_scene_summary(procedural_scene, tmp_path):
     assert "frugalnerf scene: 360 (set by --pipeline.datamanager.scene-type" in summary
     assert "(auto: " in summary and "training pixels)" in summary
     assert "novel rays off (360 scene)" in summary
+
+
+def test_metric_box_is_fitted_to_what_the_training_views_see(procedural_scene, tmp_path):
+    manager = manager_for(procedural_scene, sparse_cache_dir=tmp_path)
+    original = manager.train_dataparser_outputs.scene_box.aabb
+    fitted = manager.train_dataset.scene_box.aabb
+    assert manager.fitted_box is not None and torch.equal(manager.fitted_box, original)
+    assert (fitted[0] >= original[0]).all() and (fitted[1] <= original[1]).all()
+    assert float((fitted[1] - fitted[0]).prod()) < 0.9 * float((original[1] - original[0]).prod())
+    if manager.sparse is not None:  # every sparse point stays inside the fitted box
+        assert ((manager.sparse.points >= fitted[0]) & (manager.sparse.points <= fitted[1])).all()
+    model = model_for(manager)
+    assert torch.equal(model.field.aabb, fitted)  # the model is built in the fitted box
+    kept = manager_for(procedural_scene, sparse_cache_dir=tmp_path, fit_scene_box=False)
+    assert kept.fitted_box is None and torch.equal(kept.train_dataset.scene_box.aabb, original)

@@ -38,13 +38,16 @@ def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tm
     result = subprocess.run(
         [sys.executable, str(SCRIPT), "--data", str(procedural_scene), "--parser", "frugal-nerfstudio --center-method focus",
          "--presets", "frugalnerf-tiny", "--budgets", "20", "--scales", "0", "--scales-budget", "20",
-         "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
+         "--grid-sides", "24", "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
         capture_output=True, text=True, timeout=900,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     rows = json.loads((out / "tradeoff.json").read_text())
     runs = {row["run"] for row in rows}
-    assert runs == {"frugalnerf-tiny/20", "frugalnerf-tiny/20/L=0", "tensorf/10"}
+    assert runs == {"frugalnerf-tiny/20", "frugalnerf-tiny/20/L=0", "frugalnerf-tiny/20/grid=24", "tensorf/10"}
+    # The grid sweep's run really trained at that grid: its config asks for 24^3 final voxels.
+    config = (out / "runs" / "frugalnerf-tiny-20-grid=24" / "frugalnerf-tiny" / "run" / "config.yml").read_text()
+    assert f"final_voxels: {24 ** 3}" in config
     anytime = sorted(row["step"] for row in rows if row["run"] == "frugalnerf-tiny/20")
     assert anytime == [11, 20]  # a checkpoint every 10 steps and the last one
     for row in rows:
@@ -70,7 +73,9 @@ def test_model_size_script_measures_fixed_and_auto_grids(procedural_scene, tmp_p
     assert result.returncode == 0, result.stderr[-3000:]
     fixed, auto = json.loads(out.read_text())
     assert fixed["preset"] == "frugalnerf-tiny" and auto["preset"] == "frugalnerf-tiny + auto-grid"
-    assert fixed["grid"] == "47x47x47"  # the preset's 48^3 voxels in the procedural scene's box
+    # The preset's 48^3 voxels, shaped to the (fitted, not cubic) scene box.
+    sides = [int(v) for v in fixed["grid"].split("x")]
+    assert abs(sides[0] * sides[1] * sides[2] / 48**3 - 1) < 0.1 and len(set(sides)) > 1
     assert fixed["grid"] != auto["grid"]
     for row in (fixed, auto):
         # The field is what grows with the grid; the checkpoint holds it plus the LPIPS network.
