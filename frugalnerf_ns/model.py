@@ -211,7 +211,10 @@ class FrugalNeRFModel(Model):
         self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
         self.psnr = PeakSignalNoiseRatio(data_range=1.0)
         self.ssim = structural_similarity_index_measure
-        self.lpips = OfflineLPIPS()
+        # The LPIPS network only scores renders: it is not part of the scene, so it stays out of the module
+        # tree and out of every checkpoint (~10 MB of fixed AlexNet weights, loaded from its own file).
+        self._metric_networks = {"lpips": OfflineLPIPS()}
+        self._register_load_state_dict_pre_hook(drop_metric_network_keys)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
         self.scale_history = ScaleFractionHistory()
@@ -557,6 +560,13 @@ class FrugalNeRFModel(Model):
         renderer module this model does not have)."""
         return torch.cat([outputs[output_name], outputs[output_name.replace("rgb", "accumulation")]], dim=-1)
 
+    def lpips(self, images_0: Tensor, images_1: Tensor) -> Tensor:
+        """LPIPS distance (``OfflineLPIPS``), on the device of the images."""
+        network = self._metric_networks["lpips"]
+        if network.shift.device != images_0.device:
+            network.to(images_0.device)
+        return network(images_0, images_1)
+
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
@@ -594,6 +604,13 @@ def masked_psnr(rgb: Tensor, image: Tensor, mask: Tensor) -> float:
     mask = mask.to(rgb.dtype)
     mse = (((rgb - image) ** 2) * mask).sum() / (mask.sum().clamp_min(1.0) * rgb.shape[-1])
     return float(-10.0 * torch.log10(mse.clamp_min(1e-10)))
+
+
+def drop_metric_network_keys(state_dict, prefix, *args) -> None:
+    """Checkpoints written before the LPIPS network left the module tree hold its weights under
+    ``lpips.``: drop them so those checkpoints still load strictly."""
+    for key in [k for k in state_dict if k.startswith(f"{prefix}lpips.")]:
+        del state_dict[key]
 
 
 def masked_image_metrics(rgb: Tensor, image: Tensor, mask: Tensor, ssim, lpips) -> Dict[str, float]:

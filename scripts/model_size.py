@@ -54,8 +54,8 @@ def measure(preset: str, data: Path, parser_args: List[str], auto_grid: bool) ->
         path = Path(folder) / "step.ckpt"
         torch.save({"step": 0, "pipeline": pipeline.state_dict()}, path)
         megabytes = path.stat().st_size / 1e6
-    # The field (grids, MLP, occupancy mask) is the scene; the checkpoint also carries the LPIPS network
-    # the model scores with (~2.5 M parameters) and nerfstudio's bookkeeping.
+    # The field (grids, MLP, occupancy mask) is the scene; the checkpoint adds nerfstudio's bookkeeping (a
+    # trained run's checkpoint also holds the optimisers' state: Adam keeps two numbers per parameter).
     field_mb = sum(t.numel() * t.element_size() for t in list(model.field.parameters()) + list(model.field.buffers())) / 1e6
     parameters = sum(p.numel() for p in model.field.parameters())
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)

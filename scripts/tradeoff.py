@@ -168,7 +168,7 @@ def main(argv=None) -> None:
                         'e.g. "frugal-nerfstudio --center-method focus"')
     parser.add_argument("--baseline-parser", help="dataparser for tensorf, one string (default: --parser)")
     parser.add_argument("--presets", nargs="+", help="FrugalNeRF presets (default: the scene's)")
-    parser.add_argument("--budgets", type=int, nargs="+", default=[500, 1500], help="iteration budgets")
+    parser.add_argument("--budgets", type=int, nargs="*", default=[500, 1500], help="iteration budgets")
     parser.add_argument("--scales", type=int, nargs="*", default=[0, 1, 2, 3], help="numbers of lower scales L")
     parser.add_argument("--scales-budget", type=int, default=500, help="iterations of the L sweep")
     parser.add_argument("--grid-sides", nargs="*", default=[],

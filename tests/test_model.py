@@ -252,3 +252,18 @@ def test_regularisers_vanish_when_their_weights_are_zero():
     )
     model.train()
     assert model._regularizers(model.get_outputs(ray_bundle(16))) == {}
+
+
+def test_checkpoints_hold_the_scene_not_the_metric_network():
+    from frugalnerf_ns.lpips_offline import OfflineLPIPS
+
+    model = tiny_model()
+    state = model.state_dict()
+    assert not any("lpips" in key for key in state)  # ~10 MB of AlexNet stay out of every checkpoint
+    assert any(key.startswith("field.") for key in state)
+    # A checkpoint written while the network was a submodule (keys under "lpips.") still loads strictly.
+    old = {**state, **{f"lpips.{k}": v for k, v in OfflineLPIPS().state_dict().items()}}
+    tiny_model().load_state_dict(old, strict=True)
+    images = torch.rand(2, 1, 3, 32, 32)
+    assert float(model.lpips(images[0], images[0])) == pytest.approx(0.0, abs=1e-6)
+    assert float(model.lpips(images[0], images[1])) > 0.01

@@ -78,6 +78,6 @@ def test_model_size_script_measures_fixed_and_auto_grids(procedural_scene, tmp_p
     assert abs(sides[0] * sides[1] * sides[2] / 48**3 - 1) < 0.1 and len(set(sides)) > 1
     assert fixed["grid"] != auto["grid"]
     for row in (fixed, auto):
-        # The field is what grows with the grid; the checkpoint holds it plus the LPIPS network.
+        # The field is what grows with the grid; the checkpoint holds it plus nerfstudio's bookkeeping.
         assert 0 < row["field_mb"] < row["checkpoint_mb"] and row["peak_rss_mib"] > 100 and row["rays"] > 0
     assert "| frugalnerf-tiny + auto-grid | " in result.stdout
