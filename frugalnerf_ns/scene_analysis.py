@@ -192,8 +192,8 @@ def fit_scene_box(
     on every side and never beyond ``box``. ``box`` itself when nothing is known."""
     parts = [] if seen_box is None else [seen_box.double()]
     if points is not None and len(points) > 0:
-        lo, hi = box[0].double(), box[1].double()
-        inside = points.double()[((points.double() >= lo) & (points.double() <= hi)).all(dim=-1)]
+        points, lo, hi = points.double(), box[0].double(), box[1].double()
+        inside = points[((points >= lo) & (points <= hi)).all(dim=-1)]
         if len(inside) > 0:
             parts.append(torch.stack([inside.min(0).values, inside.max(0).values]))
     if not parts:

@@ -10,8 +10,8 @@ budget and saves a checkpoint every ``--anytime-every`` steps; each checkpoint i
 afterwards (``offline_tools eval``), and its wall time is the time from the start of ``ns-train`` (set-up,
 triangulation and all) to that checkpoint's file. ``--scales`` runs the first preset with L = 0..3 lower
 scales (the paper's ablation) at ``--scales-budget``, and ``--grid-sides`` runs it with each final grid
-(``auto``: sized from the training pixels, ``--pipeline.model.auto-grid``; a number N: N^3 voxels); tensorf (nerfstudio's) runs on the same views as the
-reference. Writes ``tradeoff.md`` (table), ``tradeoff.json``, ``pareto.png`` (final test PSNR and LPIPS vs
+(``auto``: sized from the training pixels, ``--pipeline.model.auto-grid``; a number N: N^3 voxels);
+tensorf (nerfstudio's) runs on the same views as the reference. Writes ``tradeoff.md`` (table), ``tradeoff.json``, ``pareto.png`` (final test PSNR and LPIPS vs
 wall time, Pareto front marked) and ``anytime.png`` (test PSNR vs wall time during training).
 """
 
