@@ -2,7 +2,7 @@
 
   python scripts/tradeoff.py --scene fern [--presets frugalnerf-cpu] [--budgets 500 1500]
          [--scales 0 1 2 3] [--scales-budget 500] [--grid-sides auto 320] [--anytime-every 500]
-         [--tensorf-iterations 1500] [--out outputs/tradeoff]
+         [--tensorf-iterations 1500] [--seed N] [--out outputs/tradeoff]
   python scripts/tradeoff.py --data <scene dir> --parser "frugal-nerfstudio --center-method focus" ...
 
 Every FrugalNeRF run scales its preset's step schedule (upsampling, alpha mask, learning-rate decay) to its
@@ -11,8 +11,9 @@ afterwards (``offline_tools eval``), and its wall time is the time from the star
 triangulation and all) to that checkpoint's file. ``--scales`` runs the first preset with L = 0..3 lower
 scales (the paper's ablation) at ``--scales-budget``, and ``--grid-sides`` runs it with each final grid
 (``auto``: sized from the training pixels, ``--pipeline.model.auto-grid``; a number N: N^3 voxels);
-tensorf (nerfstudio's) runs on the same views as the reference. Writes ``tradeoff.md`` (table), ``tradeoff.json``, ``pareto.png`` (final test PSNR and LPIPS vs
-wall time, Pareto front marked) and ``anytime.png`` (test PSNR vs wall time during training).
+tensorf (nerfstudio's) runs on the same views as the reference. Writes ``tradeoff.md`` (table),
+``tradeoff.json``, ``pareto.png`` (final test PSNR and LPIPS vs wall time, Pareto front marked) and
+``anytime.png`` (test PSNR vs wall time during training).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
 import yaml
 
@@ -52,8 +53,10 @@ def budget_args(preset: str, iterations: int) -> List[str]:
 
 
 def train(label: str, method: str, data: Path, parser_args: Sequence[str], extra: Sequence[str], every: int,
-          out: Path) -> Dict[str, Any]:
+          out: Path, seed: Optional[int] = None) -> Dict[str, Any]:
     """Train one run with a checkpoint every ``every`` steps; return where it is and when each came."""
+    if seed is not None:
+        extra = [*extra, "--machine.seed", str(seed)]
     experiment = label.replace("/", "-")
     run_dir = out / "runs" / experiment / method / "run"
     command = [
@@ -176,6 +179,7 @@ def main(argv=None) -> None:
     parser.add_argument("--anytime-every", type=int, default=500, help="steps between scored checkpoints")
     parser.add_argument("--tensorf-iterations", type=int, default=1500, help="0 skips the tensorf reference")
     parser.add_argument("--tensorf-rays", type=int, default=1024)
+    parser.add_argument("--seed", type=int, help="nerfstudio's --machine.seed for every run (default: each method's)")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "tradeoff")
     args = parser.parse_args(argv)
 
@@ -201,7 +205,7 @@ def main(argv=None) -> None:
     for preset in presets:
         for budget in args.budgets:
             runs.append(train(f"{preset}/{budget}", preset, data, parser_args, budget_args(preset, budget),
-                              min(args.anytime_every, budget), args.out))
+                              min(args.anytime_every, budget), args.out, args.seed))
     from frugalnerf_ns.presets import build_trainer_config
 
     own_lower = build_trainer_config(presets[0]).pipeline.model.num_lower_scales
@@ -210,17 +214,18 @@ def main(argv=None) -> None:
             continue  # that run is the preset's own at this budget
         extra = budget_args(presets[0], args.scales_budget) + ["--pipeline.model.num-lower-scales", str(lower)]
         runs.append(train(f"{presets[0]}/{args.scales_budget}/L={lower}", presets[0], data, parser_args, extra,
-                          args.scales_budget, args.out))
+                          args.scales_budget, args.out, args.seed))
     for side in args.grid_sides:
         grid = ["--pipeline.model.auto-grid", "True"] if side == "auto" else [
             "--pipeline.model.auto-grid", "False", "--pipeline.model.final-voxels", str(int(side) ** 3)]
-        runs.append(train(f"{presets[0]}/{args.scales_budget}/grid={side}", presets[0], data, parser_args,
-                          budget_args(presets[0], args.scales_budget) + grid, args.scales_budget, args.out))
+        extra = budget_args(presets[0], args.scales_budget) + grid
+        runs.append(train(f"{presets[0]}/{args.scales_budget}/grid={side}", presets[0], data, parser_args, extra,
+                          args.scales_budget, args.out, args.seed))
     if args.tensorf_iterations > 0:
         extra = ["--max-num-iterations", str(args.tensorf_iterations), "--pipeline.datamanager.train-num-rays-per-batch",
                  str(args.tensorf_rays)]
         runs.append(train(f"tensorf/{args.tensorf_iterations}", "tensorf", data, baseline_parser, extra,
-                          min(args.anytime_every, args.tensorf_iterations), args.out))
+                          min(args.anytime_every, args.tensorf_iterations), args.out, args.seed))
     rows = [row for run in runs for row in score(run)]
     table = markdown(rows)
     print(table)

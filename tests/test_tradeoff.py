@@ -38,7 +38,7 @@ def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tm
     result = subprocess.run(
         [sys.executable, str(SCRIPT), "--data", str(procedural_scene), "--parser", "frugal-nerfstudio --center-method focus",
          "--presets", "frugalnerf-tiny", "--budgets", "20", "--scales", "0", "--scales-budget", "20",
-         "--grid-sides", "24", "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
+         "--grid-sides", "24", "--seed", "3", "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
         capture_output=True, text=True, timeout=900,
     )
     assert result.returncode == 0, result.stderr[-3000:]
@@ -47,7 +47,7 @@ def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tm
     assert runs == {"frugalnerf-tiny/20", "frugalnerf-tiny/20/L=0", "frugalnerf-tiny/20/grid=24", "tensorf/10"}
     # The grid sweep's run really trained at that grid: its config asks for 24^3 final voxels.
     config = (out / "runs" / "frugalnerf-tiny-20-grid=24" / "frugalnerf-tiny" / "run" / "config.yml").read_text()
-    assert f"final_voxels: {24 ** 3}" in config
+    assert f"final_voxels: {24 ** 3}" in config and "seed: 3" in config
     anytime = sorted(row["step"] for row in rows if row["run"] == "frugalnerf-tiny/20")
     assert anytime == [11, 20]  # a checkpoint every 10 steps and the last one
     for row in rows:
