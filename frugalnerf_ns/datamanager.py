@@ -15,6 +15,7 @@ evaluation object mask (DTU protocol).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Dict, Literal, Optional, Tuple, Type
 
@@ -25,7 +26,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
 from nerfstudio.data.datasets.base_dataset import InputDataset
-from nerfstudio.data.pixel_samplers import PixelSamplerConfig
+from nerfstudio.data.pixel_samplers import PixelSampler, PixelSamplerConfig
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -42,6 +43,7 @@ from frugalnerf_ns.scene_analysis import (
     fit_scene_box,
     has_plain_background,
     seen_region_box,
+    uninformative_view_notes,
 )
 from frugalnerf_ns.sparse_points import (
     SparseDepth,
@@ -55,12 +57,40 @@ from frugalnerf_ns.sparse_points import (
 )
 
 
+def image_mode(path) -> Tuple[str, bool]:
+    """PIL mode of an image file and whether it carries alpha (RGBA, LA, or a palette with transparency)."""
+    with Image.open(path) as img:
+        has_alpha = img.mode in ("RGBA", "LA", "PA", "La", "RGBa") or (img.mode == "P" and "transparency" in img.info)
+        return img.mode, has_alpha
+
+
 class FrugalDataset(InputDataset):
     """InputDataset that also loads ``eval_mask`` (bool, H x W x 1) when the dataparser lists eval masks.
 
     nerfstudio's own ``mask`` would also restrict which pixels are *trained*, and only reads 1-channel
     files; DTU's masks are RGB and must only affect the metrics.
     """
+
+    @cached_property
+    def any_image_has_alpha(self) -> bool:
+        """Whether an image of this dataset has an alpha channel (PIL reads only the file headers)."""
+        return any(image_mode(f)[1] for f in self._dataparser_outputs.image_filenames)
+
+    def get_numpy_image(self, image_idx: int) -> np.ndarray:
+        """uint8 RGB, or RGBA for every image when any image of the dataset has alpha (opaque alpha for the
+        others), so images stack and the model composites each on the same background. Palette, grey and
+        grey-alpha files are converted rather than read as raw channel values."""
+        filename = self._dataparser_outputs.image_filenames[image_idx]
+        with Image.open(filename) as pil_image:
+            image = pil_image.convert("RGBA" if image_mode(filename)[1] else "RGB")
+        if self.scale_factor != 1.0:
+            width, height = image.size
+            newsize = (int(width * self.scale_factor), int(height * self.scale_factor))
+            image = image.resize(newsize, resample=Image.Resampling.BILINEAR)
+        array = np.array(image, dtype=np.uint8)
+        if self.any_image_has_alpha and array.shape[-1] == 3:
+            array = np.concatenate([array, np.full_like(array[..., :1], 255)], axis=-1)
+        return array
 
     def get_metadata(self, data: Dict) -> Dict:
         masks = self.metadata.get("eval_mask_filenames")
@@ -174,6 +204,10 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         centers = cameras.camera_to_worlds[:, :3, 3]
         self.train_nearest_view = nearest_training_views(centers, centers, torch.arange(len(centers))).to(self.device)
         self.scene_layout = self._scene_layout(cameras)
+        if self.test_mode == "val":  # training (eval tools and the viewer build this too: no repeats there)
+            names = [Path(f).name for f in self.train_dataparser_outputs.image_filenames]
+            for note in uninformative_view_notes(self.warp_images, cameras.camera_to_worlds, names):
+                CONSOLE.print(f"[bold yellow]frugalnerf: {note}.")
         if len(centers) < 2:
             CONSOLE.print(
                 "[bold yellow]frugalnerf: one training view: training rays have no other view to warp into, so "
@@ -198,6 +232,14 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         model_path = getattr(self.config, "mono_depth_model", None)
         if self.test_mode == "val" and model_path is not None:
             self.mono_depth = self._mono_depth(Path(model_path))
+
+    def _get_pixel_sampler(self, dataset: FrugalDataset, num_rays_per_batch: int) -> PixelSampler:
+        """Per-pixel sampler for the eval batches (training batches come from ``next_train``).
+
+        ``patch_size`` is FrugalNeRF's training patch; nerfstudio's VanillaDataManager would read it as the size
+        of its own patch sampler, whose batches must be multiples of k^2 (4096 eval rays are not of 25) and
+        which has no use here: eval rays are scored pixel by pixel."""
+        return PixelSamplerConfig(num_rays_per_batch=num_rays_per_batch).setup()
 
     def _scene_layout(self, cameras: Cameras) -> CameraLayout:
         """Classify the scene and publish what the model needs (scene type, training pixel count) in the

@@ -62,8 +62,9 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     baseline = constant_color_psnr(args.scene)
     print()
     print(f"frugalnerf demo: trained and evaluated in {time.time() - start:.0f} s ({results['run_dir']})")
+    lpips = f"{results['lpips']:.3f}" if "lpips" in results else "unavailable"
     print(
-        f"test-view PSNR {results['psnr']:.2f} dB, SSIM {results['ssim']:.3f}, LPIPS {results['lpips']:.3f} "
+        f"test-view PSNR {results['psnr']:.2f} dB, SSIM {results['ssim']:.3f}, LPIPS {lpips} "
         f"(constant-colour baseline: PSNR {baseline:.2f} dB)"
     )
 

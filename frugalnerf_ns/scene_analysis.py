@@ -10,7 +10,7 @@ training images can actually resolve.
 from __future__ import annotations
 
 import math
-from typing import Literal, NamedTuple, Optional, Tuple
+from typing import List, Literal, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 from jaxtyping import Float
@@ -203,3 +203,34 @@ def fit_scene_box(
     pad = (upper - lower) * margin
     fitted = torch.stack([lower - pad, upper + pad])
     return torch.stack([torch.maximum(fitted[0], box[0].double()), torch.minimum(fitted[1], box[1].double())]).to(box.dtype)
+
+
+def uninformative_view_notes(
+    images: Float[Tensor, "views height width 3"],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    names: Sequence[str],
+    black_level: float = 2.0 / 255.0,
+    same_position: float = 1e-4,
+) -> List[str]:
+    """One sentence per training-view problem that trains without error but teaches little: an all-black
+    image, and two views taken from the same position (no parallax: nothing to triangulate, and a warp into
+    the other view matches at every depth). ``same_position`` is relative to the scene's extent (the camera
+    spread, or the largest camera distance from the origin when there is none)."""
+    notes = []
+    black = [name for name, image in zip(names, images) if float(image.max()) <= black_level]
+    if black:
+        notes.append(
+            f"training image(s) {', '.join(black)} are entirely black: no colour to fit, no features for sparse "
+            "depth, nothing for geometric adaptation to match"
+        )
+    centers = camera_to_worlds[:, :3, 3].double()
+    if len(centers) >= 2:
+        distance = torch.cdist(centers, centers)
+        extent = max(float(distance.max()), float(centers.norm(dim=-1).max()), 1e-12)
+        for i, j in zip(*torch.triu_indices(len(centers), len(centers), offset=1).tolist()):
+            if float(distance[i, j]) <= same_position * extent:
+                notes.append(
+                    f"training views {names[i]} and {names[j]} were taken from the same position: no parallax "
+                    "between them, so sparse depth and geometric adaptation learn no geometry from the pair"
+                )
+    return notes

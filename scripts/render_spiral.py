@@ -26,8 +26,10 @@ def main(argv=None) -> Path:
     if not args.config.is_file():
         sys.exit(f"render_spiral: error: {args.config} is not a file (pass <run>/config.yml)")
 
-    import frugalnerf_ns  # noqa: F401 - plugin import: checkpoint loading and ffmpeg on PATH
+    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
     from nerfstudio.scripts.render import SpiralRender
+
+    provide_ffmpeg()  # this script writes a video like ns-render: the bundled ffmpeg when PATH has none
 
     output = args.output or args.config.parent / "renders" / ("spiral-depth.mp4" if args.depth else "spiral.mp4")
     output.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,148 @@
+"""FrugalNeRF's trainer: nerfstudio's, made safe to interrupt and clear about what a user can fix.
+
+- Options are checked before anything is loaded (``options.validate_options``).
+- Checkpoints are written atomically (``checkpoints.write_checkpoint``); resuming from a folder loads the
+  newest checkpoint that reads back whole, saying which newer one it skipped.
+- Running out of memory in a step ends with one line naming the batch options, after saving the last
+  completed step when it is newer than the last checkpoint.
+- A start that fails before training (bad data, bad options) removes the run folder when it holds nothing
+  but the config.yml nerfstudio wrote before setting up.
+
+``--max-num-iterations`` keeps nerfstudio's meaning (steps to run in this invocation, also when resuming);
+every schedule (learning rate, loss weights, upsampling, alpha mask) follows the absolute step, so a
+resumed run continues exactly where the interrupted one was.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Literal, Type
+
+import torch
+from nerfstudio.engine.trainer import Trainer, TrainerConfig
+from nerfstudio.utils.decorators import check_main_thread
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from frugalnerf_ns.checkpoints import (
+    checkpoint_file_name,
+    newest_intact_checkpoint,
+    read_checkpoint_or_exit,
+    write_checkpoint,
+)
+from frugalnerf_ns.options import OptionError, flag, validate_options
+
+
+@dataclass
+class FrugalTrainerConfig(TrainerConfig):
+    """nerfstudio's trainer settings; the trainer adds atomic checkpoints and checked options."""
+
+    _target: Type = field(default_factory=lambda: FrugalTrainer)
+
+
+def is_out_of_memory(err: BaseException) -> bool:
+    """torch's CUDA OOM, or the CPU allocator's failure (a RuntimeError naming the allocation)."""
+    if isinstance(err, getattr(torch, "OutOfMemoryError", ())):
+        return True
+    text = str(err)
+    return isinstance(err, RuntimeError) and ("can't allocate memory" in text or "out of memory" in text)
+
+
+def remove_config_only_run_folder(run_dir: Path, output_dir: Path) -> bool:
+    """Delete ``run_dir`` when it holds only config.yml, then its parents up to ``output_dir`` while they are
+    empty. Returns whether the run folder went."""
+    if not run_dir.is_dir() or any(p.name != "config.yml" for p in run_dir.iterdir()):
+        return False
+    (run_dir / "config.yml").unlink(missing_ok=True)
+    run_dir.rmdir()
+    stop = output_dir.resolve()
+    parent = run_dir.parent
+    while parent.resolve() != stop and stop in parent.resolve().parents and not any(parent.iterdir()):
+        parent.rmdir()
+        parent = parent.parent
+    return True
+
+
+class FrugalTrainer(Trainer):
+    config: FrugalTrainerConfig
+
+    def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
+        try:
+            validate_options(self.config)
+            super().setup(test_mode)
+        except BaseException:
+            # nerfstudio wrote config.yml before calling us: a run that never started leaves no folder.
+            remove_config_only_run_folder(self.base_dir, Path(self.config.output_dir))
+            raise
+
+    # ---- checkpoints ------------------------------------------------------------------------------------
+    def checkpoint_state(self, step: int) -> Dict[str, Any]:
+        """What nerfstudio's save_checkpoint stores, under the same keys (its loaders read ours)."""
+        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        return {
+            "step": step,
+            "pipeline": pipeline.state_dict(),
+            "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
+            "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
+            "scalers": self.grad_scaler.state_dict(),
+        }
+
+    @check_main_thread
+    def save_checkpoint(self, step: int) -> None:
+        path = self.checkpoint_dir / checkpoint_file_name(step)
+        write_checkpoint(self.checkpoint_state(step), path, keep_only_this=self.config.save_only_latest_checkpoint)
+        self.last_saved_step = step
+
+    def _load_checkpoint(self) -> None:
+        cfg = self.config
+        if cfg.load_dir is not None and cfg.load_step is None:
+            path, state = newest_intact_checkpoint(Path(cfg.load_dir))
+        elif cfg.load_dir is not None:
+            path = Path(cfg.load_dir) / checkpoint_file_name(cfg.load_step)
+            state = read_checkpoint_or_exit(path)
+        elif cfg.load_checkpoint is not None:
+            path = Path(cfg.load_checkpoint)
+            state = read_checkpoint_or_exit(path)
+        else:
+            CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
+            return
+        self._start_step = state["step"] + 1
+        self.pipeline.load_pipeline(state["pipeline"], state["step"])
+        self.optimizers.load_optimizers(state["optimizers"])
+        if "schedulers" in state and cfg.load_scheduler:
+            self.optimizers.load_schedulers(state["schedulers"])
+        self.grad_scaler.load_state_dict(state["scalers"])
+        self.last_saved_step = state["step"]
+        CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
+
+    # ---- training ---------------------------------------------------------------------------------------
+    def train_iteration(self, step: int):
+        try:
+            return super().train_iteration(step)
+        except Exception as err:  # noqa: BLE001 - only out-of-memory is handled; the rest re-raises as is
+            if not is_out_of_memory(err):
+                raise
+            message = self._out_of_memory_message(step)
+        # Outside the except block, so the failed step's tensors (held by the traceback) are freed first.
+        self.optimizers.zero_grad_all()
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+        if step - 1 > getattr(self, "last_saved_step", -1) and step > self._start_step:
+            self.save_checkpoint(step - 1)
+            message += f"; steps up to {step - 1} are saved in {self.checkpoint_dir}"
+        raise OptionError(message)
+
+    def _out_of_memory_message(self, step: int) -> str:
+        dm = self.config.pipeline.datamanager
+        rays = f"{dm.train_num_rays_per_batch} training + {getattr(dm, 'num_novel_rays_per_batch', 0)} novel rays"
+        model = self.pipeline.model
+        grid = ""
+        if hasattr(model, "field"):
+            side = round(float(model.field.density_grid.resolution.prod()) ** (1 / 3))
+            grid = f", grid ~{side}^3"
+        return (
+            f"out of memory at step {step} ({rays} per step{grid} on {self.device}): lower "
+            f"{flag('pipeline.datamanager.train_num_rays_per_batch')}, "
+            f"{flag('pipeline.datamanager.num_novel_rays_per_batch')} or {flag('pipeline.model.final_voxels')}"
+        )
+
