@@ -591,6 +591,14 @@ class FrugalNeRFModel(Model):
         network = self._lpips_network()
         if network is None:
             return None
+        if min(images_0.shape[-2:]) < network.MIN_SIDE:
+            if not getattr(self, "_said_lpips_size", False):
+                CONSOLE.print(
+                    f"[bold yellow]frugalnerf: LPIPS needs images of at least {network.MIN_SIDE} pixels a side "
+                    f"(these are {images_0.shape[-1]}x{images_0.shape[-2]}): metrics leave it out."
+                )
+                self._said_lpips_size = True
+            return None
         if network.shift.device != images_0.device:
             network.to(images_0.device)
         return network(images_0, images_1)
