@@ -5,8 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from nerfstudio.utils import writer
-
 from frugalnerf_ns.presets import apply_override, build_trainer_config
 
 
@@ -26,6 +24,8 @@ def preset_config(preset: str, data: Path, output_dir: Path, **overrides: Any):
 
 def train(config):
     """Set up and train ``config`` with nerfstudio's trainer loop; returns the trainer."""
+    from nerfstudio.utils import writer  # after nerfstudio's configs (importing it first is circular)
+
     # nerfstudio's writers are module globals: start each run with none from an earlier one.
     writer.EVENT_WRITERS.clear()
     writer.EVENT_STORAGE.clear()
