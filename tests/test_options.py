@@ -1,0 +1,86 @@
+"""Options checked before training: one line naming the option, its limit and the value; a start that fails
+leaves no run folder behind; running out of memory is one line too."""
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from frugalnerf_ns.options import OptionError, option_problems, validate_options
+from frugalnerf_ns.presets import apply_override, build_trainer_config, load_preset_table
+
+BIN = Path(sys.executable).parent
+
+
+@pytest.mark.parametrize("preset", sorted(load_preset_table()))
+def test_every_preset_passes_the_checks(preset):
+    assert option_problems(build_trainer_config(preset)) == []
+
+
+@pytest.mark.parametrize(
+    "path, value, expected",
+    [
+        ("pipeline.model.final_voxels", 0, "--pipeline.model.final-voxels must be >= --pipeline.model.initial-voxels (262144), got 0"),
+        ("pipeline.model.final_voxels", -8, "got -8"),
+        ("pipeline.model.initial_voxels", 0, "--pipeline.model.initial-voxels must be >= 8 (2^3), got 0"),
+        ("pipeline.model.reprojection_threshold", -1.0, "--pipeline.model.reprojection-threshold must be > 0"),
+        ("pipeline.model.reprojection_threshold", 0.0, "every ray would be left out"),
+        ("pipeline.datamanager.patch_size", 4, "--pipeline.datamanager.patch-size must be odd and >= 1"),
+        ("pipeline.datamanager.patch_size", 0, "got 0"),
+        ("pipeline.datamanager.train_num_rays_per_batch", 24, ">= one 5x5 patch (25 rays), got 24"),
+        ("pipeline.model.geo_weight", -0.01, "--pipeline.model.geo-weight must be >= 0 and finite, got -0.01"),
+        ("pipeline.model.distortion_weight", math.nan, "--pipeline.model.distortion-weight must be >= 0 and finite"),
+        ("pipeline.model.upsample_iters", (1000, 500), "--pipeline.model.upsample-iters must be increasing steps >= 0, got 1000 500"),
+        ("pipeline.model.loss_weight_decay", 0.0, "--pipeline.model.loss-weight-decay must be > 0"),
+        ("pipeline.datamanager.num_novel_rays_per_batch", -1, "got -1"),
+    ],
+)
+def test_a_bad_value_is_one_line_naming_the_option_and_limit(path, value, expected):
+    config = build_trainer_config("frugalnerf")
+    apply_override(config, path, value)
+    with pytest.raises(OptionError) as err:
+        validate_options(config)
+    message = str(err.value)
+    assert message.startswith("frugalnerf: error: ") and expected in message and "\n" not in message
+
+
+def test_auto_grid_ignores_final_voxels_and_several_problems_are_counted():
+    config = build_trainer_config("frugalnerf")
+    apply_override(config, "pipeline.model.auto_grid", True)
+    apply_override(config, "pipeline.model.final_voxels", 0)
+    assert option_problems(config) == []
+    apply_override(config, "pipeline.datamanager.patch_size", 6)
+    apply_override(config, "pipeline.model.geo_weight", -1.0)
+    with pytest.raises(OptionError, match=r"\(and 1 more problem"):
+        validate_options(config)
+
+
+def ns_train(*args, timeout=300):
+    return subprocess.run([str(BIN / "ns-train"), *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+def test_bad_option_and_bad_data_stop_before_training_and_leave_no_run_folder(procedural_scene, tmp_path):
+    out = tmp_path / "outputs"
+    bad_option = ns_train("frugalnerf-tiny", "--data", procedural_scene, "--output-dir", out, "--vis", "tensorboard",
+                          "--pipeline.model.final-voxels", "0")
+    assert bad_option.returncode == 1
+    last = bad_option.stderr.strip().splitlines()[-1]
+    assert last.startswith("frugalnerf: error: --pipeline.model.final-voxels must be >=") and last.endswith("got 0")
+    assert "Traceback" not in bad_option.stderr
+    missing = ns_train("frugalnerf-tiny", "--data", tmp_path / "no-such-scene", "--output-dir", out, "--vis", "tensorboard")
+    assert missing.returncode == 1 and "Traceback" not in missing.stderr
+    assert missing.stderr.strip().splitlines()[-1].startswith("frugalnerf: error:")
+    # nerfstudio wrote config.yml before set-up: nothing of either run is left.
+    assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
+
+
+def test_a_batch_larger_than_memory_is_one_line(procedural_scene, tmp_path):
+    # 10^12 rays: the first allocation (the patch indices, 320 GB) fails at once, before any page is touched.
+    result = ns_train("frugalnerf-tiny", "--data", procedural_scene, "--output-dir", tmp_path, "--vis", "tensorboard",
+                      "--pipeline.datamanager.train-num-rays-per-batch", str(10**12))
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("frugalnerf: error: out of memory at step 0 (1000000000000 training + 256 novel rays per step")
+    assert "--pipeline.datamanager.train-num-rays-per-batch" in last
