@@ -86,6 +86,10 @@ def option_problems(config: Any) -> List[str]:
     need(dm.min_sparse_points >= 0, f"{d}.min_sparse_points", ">= 0", dm.min_sparse_points)
     need(dm.fit_box_min_views >= 1, f"{d}.fit_box_min_views", ">= 1", dm.fit_box_min_views)
     need(_non_negative(dm.fit_box_margin), f"{d}.fit_box_margin", ">= 0", dm.fit_box_margin)
+    if model.mlp_implementation == "tcnn":
+        from frugalnerf_ns.color_mlp import tcnn_available
+
+        need(tcnn_available(), f"{m}.mlp_implementation", "auto or torch where tinycudann or CUDA is missing", "tcnn")
     need(model.eval_num_rays_per_chunk >= 1, f"{m}.eval_num_rays_per_chunk", ">= 1", model.eval_num_rays_per_chunk)
     return problems
 

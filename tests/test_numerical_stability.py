@@ -208,10 +208,11 @@ def test_nearly_identical_training_cameras(baseline):
     cameras = torch.stack([camera(), camera(x=baseline)])
     centers = cameras[:, :3, 3]
     assert nearest_training_views(centers, centers, torch.arange(2)).tolist() == [1, 0]
-    # No parallax: the viewer map has no other view to warp into, and says so (-1) rather than dividing by 0.
-    origins = centers.clone()
-    nearest = nearest_other_camera(origins, cameras)
-    assert ((nearest == -1) | (nearest >= 0)).all()
+    # A ray from each camera's own centre warps into the other camera, however small the (non-zero)
+    # baseline: "the camera it starts in" is relative to the baseline. With no baseline at all both cameras
+    # are the one the ray starts in, so there is no other view (-1) rather than a division by 0.
+    nearest = nearest_other_camera(centers.clone(), cameras)
+    assert nearest.tolist() == ([-1, -1] if baseline == 0.0 else [1, 0])
     layout = classify_camera_layout(cameras)
     assert layout.scene_type == "forward-facing" and finite(layout.focus)
     poses = spiral_poses(cameras, focus_depth=3.0, num_poses=8, rotations=1.0, radius_scale=1.0, zrate=0.5)

@@ -37,15 +37,32 @@ def test_paper_preset_holds_the_paper_settings():
     assert config.optimizers["fields"]["optimizer"].lr == 0.004
 
 
-def test_derived_presets_inherit_and_override():
-    dtu = presets.build_trainer_config("frugalnerf-dtu")
-    assert dtu.pipeline.model.final_voxels == 300**3
-    assert dtu.pipeline.model.density_activation == "softplus"
-    # Not overridden by the DTU preset: inherited from the paper preset.
-    assert dtu.pipeline.model.density_components == (16, 4, 4)
-    tiny = presets.build_trainer_config("frugalnerf-tiny")
-    assert tiny.max_num_iterations < 1000 and tiny.pipeline.model.final_voxels < 64**3
-    assert tiny.method_name == "frugalnerf-tiny"
+def flatten(config, prefix=""):
+    """{dotted path: value} of every leaf of a config (dataclass fields and dict keys)."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        items = [(f.name, getattr(config, f.name)) for f in dataclasses.fields(config) if f.name != "_target"]
+    elif isinstance(config, dict):
+        items = list(config.items())
+    else:
+        return {prefix: config}
+    out = {}
+    for name, value in items:
+        out.update(flatten(value, f"{prefix}{name}."))
+    return {k.rstrip("."): v for k, v in out.items()}
+
+
+@pytest.mark.parametrize("name", [n for n, entry in sorted(presets.load_preset_table().items()) if entry.get("inherits")])
+def test_derived_presets_differ_from_their_parent_only_where_they_say(name):
+    table = presets.load_preset_table()
+    parent = table[name]["inherits"]
+    child_values, parent_values = flatten(presets.build_trainer_config(name)), flatten(presets.build_trainer_config(parent))
+    assert child_values.keys() == parent_values.keys()
+    changed = {path for path in child_values if child_values[path] != parent_values[path]}
+    said = set(table[name]["overrides"]) | {"method_name"}
+    assert changed <= said, changed - said
+    assert "method_name" in changed and len(changed) > 1
 
 
 def test_bad_presets_fail_clearly():
