@@ -133,3 +133,31 @@ def test_too_few_sparse_points_train_without_sparse_depth_and_say_so(procedural_
     assert manager.sparse is None and "without the sparse depth loss" in out
     _, batch = manager.next_train(0)
     assert "sparse_depth" not in batch
+
+
+def test_one_rgba_image_among_rgb_images(procedural_scene, tmp_path):
+    """Every image of a dataset gets the same channels: RGBA when any has alpha (opaque for the others)."""
+    import shutil
+
+    import numpy as np
+    from PIL import Image
+
+    scene = tmp_path / "mixed"
+    shutil.copytree(procedural_scene, scene)
+    for name in ("frame_000.png", "frame_002.png"):  # a training view and a test view
+        rgb = np.asarray(Image.open(scene / "images" / name).convert("RGB"))
+        alpha = np.full(rgb.shape[:2] + (1,), 255, dtype=np.uint8)
+        alpha[:10, :10] = 0
+        Image.fromarray(np.concatenate([rgb, alpha], axis=-1), "RGBA").save(scene / "images" / name)
+    manager = manager_for(scene)
+    images = manager.train_images
+    assert images.shape[-1] == 4
+    assert (images[0, :10, :10, 3] == 0).all() and (images[0, 10:, 10:, 3] == 1).all()
+    assert (images[1:, ..., 3] == 1).all()  # the RGB files: opaque
+    # Warps compare colours composited on white.
+    assert torch.allclose(manager.warp_images[0, :10, :10], torch.ones(10, 10, 3))
+    bundle, batch = manager.next_train(0)
+    assert batch["image"].shape[-1] == 4
+    # The eval batch collates every test image (one RGBA, one RGB) without a stacking error.
+    _, eval_batch = manager.next_eval(0)
+    assert eval_batch["image"].shape[-1] == 4

