@@ -18,15 +18,14 @@ from typing import Any, Dict, List, Tuple
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from frugalnerf_ns.errors import UserError
+
 CHECKPOINT_NAME = re.compile(r"^step-(\d+)\.ckpt$")
 STAGING_NAME = ".checkpoint-being-written"  # in the run folder, next to nerfstudio_models
 
 
-class CheckpointError(SystemExit):
-    """No usable checkpoint where one was asked for: one line, exit status 1."""
-
-    def __init__(self, message: str) -> None:
-        super().__init__(f"frugalnerf: error: {message}")
+class CheckpointError(UserError):
+    """No usable checkpoint where one was asked for."""
 
 
 def checkpoint_file_name(step: int) -> str:

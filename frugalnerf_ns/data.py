@@ -11,14 +11,13 @@ import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from PIL import Image, UnidentifiedImageError
 
+from frugalnerf_ns.errors import UserError
+
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".exr", ".bmp", ".tif", ".tiff"}
 
 
-class DataError(SystemExit):
-    """A problem with the user's data. A SystemExit, so ns-train prints the message and exits with 1."""
-
-    def __init__(self, message: str) -> None:
-        super().__init__(f"frugalnerf: error: {message}")
+class DataError(UserError):
+    """A problem with the user's data."""
 
 
 def check_scene_folder(data: Path) -> Path:

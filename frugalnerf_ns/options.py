@@ -11,12 +11,11 @@ import dataclasses
 import math
 from typing import Any, Iterator, List, Tuple
 
+from frugalnerf_ns.errors import UserError
 
-class OptionError(SystemExit):
-    """An option's value cannot work. A SystemExit, so ns-train prints the one line and exits with 1."""
 
-    def __init__(self, message: str) -> None:
-        super().__init__(f"frugalnerf: error: {message}")
+class OptionError(UserError):
+    """An option's value cannot work."""
 
 
 def flag(path: str) -> str:

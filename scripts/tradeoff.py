@@ -215,9 +215,12 @@ def main(argv=None) -> None:
         extra = budget_args(presets[0], args.scales_budget) + ["--pipeline.model.num-lower-scales", str(lower)]
         runs.append(train(f"{presets[0]}/{args.scales_budget}/L={lower}", presets[0], data, parser_args, extra,
                           args.scales_budget, args.out, args.seed))
+    initial = build_trainer_config(presets[0]).pipeline.model.initial_voxels
     for side in args.grid_sides:
+        # A final grid below the preset's starting grid starts at its final size (the grid never shrinks).
         grid = ["--pipeline.model.auto-grid", "True"] if side == "auto" else [
-            "--pipeline.model.auto-grid", "False", "--pipeline.model.final-voxels", str(int(side) ** 3)]
+            "--pipeline.model.auto-grid", "False", "--pipeline.model.final-voxels", str(int(side) ** 3),
+            "--pipeline.model.initial-voxels", str(min(initial, int(side) ** 3))]
         extra = budget_args(presets[0], args.scales_budget) + grid
         runs.append(train(f"{presets[0]}/{args.scales_budget}/grid={side}", presets[0], data, parser_args, extra,
                           args.scales_budget, args.out, args.seed))
