@@ -48,8 +48,9 @@ def read_checkpoint(path: Path) -> Dict[str, Any]:
     try:
         state = torch.load(path, map_location="cpu")
     except Exception as err:  # noqa: BLE001 - truncated zip, empty file, bad pickle: all mean "unreadable"
-        reason = (str(err).strip().splitlines() or [type(err).__name__])[0][:160]
-        raise ValueError(f"{type(err).__name__}: {reason}" if str(err).strip() else type(err).__name__) from None
+        # The first sentence only: torch appends advice about its internals to a truncated archive's error.
+        first = (str(err).strip().splitlines() or [""])[0].split(". ")[0][:160]
+        raise ValueError(f"{type(err).__name__}: {first}" if first else type(err).__name__) from None
     if not isinstance(state, dict) or not {"step", "pipeline"} <= set(state):
         raise ValueError("not a nerfstudio checkpoint (no step or pipeline)")
     return state

@@ -15,6 +15,7 @@ resumed run continues exactly where the interrupted one was.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Literal, Type
@@ -46,6 +47,25 @@ def is_out_of_memory(err: BaseException) -> bool:
         return True
     text = str(err)
     return isinstance(err, RuntimeError) and ("can't allocate memory" in text or "out of memory" in text)
+
+
+def memory_shortfall(err: BaseException, device: str) -> str:
+    """'asked for X GB, Y GB free' from the allocator's message and the device (what is known of each)."""
+    cpu = re.search(r"allocate (\d+) bytes", str(err))  # torch's CPU allocator
+    cuda = re.search(r"Tried to allocate ([\d.]+) GiB", str(err))  # torch's CUDA allocator
+    if cpu:
+        asked_gb = f"asked for {int(cpu.group(1)) / 1e9:.1f} GB"
+    elif cuda:
+        asked_gb = f"asked for {float(cuda.group(1)) * 2**30 / 1e9:.1f} GB"
+    else:
+        asked_gb = "an allocation failed"
+    if str(device).startswith("cuda") and torch.cuda.is_available():
+        free, _ = torch.cuda.mem_get_info()
+    else:
+        import psutil
+
+        free = psutil.virtual_memory().available
+    return f"{asked_gb}, {free / 1e9:.1f} GB free"
 
 
 def remove_config_only_run_folder(run_dir: Path, output_dir: Path) -> bool:
@@ -122,7 +142,7 @@ class FrugalTrainer(Trainer):
         except Exception as err:  # noqa: BLE001 - only out-of-memory is handled; the rest re-raises as is
             if not is_out_of_memory(err):
                 raise
-            message = self._out_of_memory_message(step)
+            message = self._out_of_memory_message(step, err)
         # Outside the except block, so the failed step's tensors (held by the traceback) are freed first.
         self.optimizers.zero_grad_all()
         if torch.cuda.is_available():
@@ -132,7 +152,7 @@ class FrugalTrainer(Trainer):
             message += f"; steps up to {step - 1} are saved in {self.checkpoint_dir}"
         raise OptionError(message)
 
-    def _out_of_memory_message(self, step: int) -> str:
+    def _out_of_memory_message(self, step: int, err: BaseException) -> str:
         dm = self.config.pipeline.datamanager
         rays = f"{dm.train_num_rays_per_batch} training + {getattr(dm, 'num_novel_rays_per_batch', 0)} novel rays"
         model = self.pipeline.model
@@ -141,7 +161,7 @@ class FrugalTrainer(Trainer):
             side = round(float(model.field.density_grid.resolution.prod()) ** (1 / 3))
             grid = f", grid ~{side}^3"
         return (
-            f"out of memory at step {step} ({rays} per step{grid} on {self.device}): lower "
+            f"out of memory at step {step} ({rays} per step{grid} on {self.device}; {memory_shortfall(err, self.device)}): lower "
             f"{flag('pipeline.datamanager.train_num_rays_per_batch')}, "
             f"{flag('pipeline.datamanager.num_novel_rays_per_batch')} or {flag('pipeline.model.final_voxels')}"
         )

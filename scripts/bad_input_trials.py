@@ -49,11 +49,18 @@ def user_line(proc: subprocess.CompletedProcess, needle: Optional[str]) -> str:
     """The line a user reads: the one holding ``needle`` (a warning) or the last line of stderr."""
     text = proc.stdout + proc.stderr
     if needle:
-        joined = " ".join(text.split())
+        joined = " ".join(text.split())  # rich wraps long lines: search the text unwrapped
         at = joined.find(needle)
-        return joined[at : at + 200] if at >= 0 else f"(no line with {needle!r})"
+        if at < 0:
+            return f"(no line with {needle!r})"
+        start = joined.rfind("frugalnerf:", max(0, at - 250), at)
+        start = at if start < 0 else start
+        end = joined.find("frugalnerf:", at)  # up to the next message
+        return joined[start : end if end > 0 else start + 260][:260].strip()
+    if proc.returncode == 0:
+        return "ok"
     lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
-    return lines[-1][:200] if lines else "(nothing on stderr)"
+    return lines[-1][:260] if lines else "(nothing on stderr)"
 
 
 def fixtures(root: Path) -> Dict[str, Path]:
@@ -148,14 +155,14 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     train("patch-size 4 (even)", fx["scene"], "--pipeline.datamanager.patch-size", "4")
     train("train rays 10^12 (memory)", fx["scene"], "--pipeline.datamanager.train-num-rays-per-batch", str(10**12))
     train("missing --data folder", root / "data" / "no-such-scene")
-    train("one RGBA image among RGB (5 steps)", fx["mixed-rgba"], "--max-num-iterations", "5")
+    train("one RGBA image among RGB (5 steps)", fx["mixed-rgba"], "--max-num-iterations", "5", needle="Training Finished")
     train("all-black training images (5 steps)", fx["black"], "--max-num-iterations", "5", needle="entirely black")
     train("two training views, one camera (5 steps)", fx["same-camera"], "--max-num-iterations", "5", needle="same position")
     out = root / "runs" / "paper-eval"
     trial("paper preset, --vis tensorboard, eval batch/image/all at step 20 (22 steps)",
           [BIN / "ns-train", "frugalnerf", "--data", fx["scene"], "--output-dir", out, *QUIET, "--max-num-iterations", "22",
            "--steps-per-eval-batch", "20", "--steps-per-eval-image", "20", "--steps-per-eval-all-images", "21",
-           "frugal-auto", "--center-method", "focus"], out)
+           "frugal-auto", "--center-method", "focus"], out, needle="Training Finished")
     for damage in ("truncated", "empty"):
         copy = copy_run(run_dir, root / f"cut-{damage}", damage)
         trial(f"ns-eval, newest checkpoint {damage}", [BIN / "ns-eval", "--load-config", copy / "config.yml",
@@ -177,7 +184,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     env = {"PATH": "/usr/bin:/bin", "TMPDIR": str(tmpdir), "HOME": str(root)}
     trial("planted $TMPDIR/frugalnerf-ffmpeg-<uid>/ls, then import plugin and run ls",
           [sys.executable, "-c", "import frugalnerf_ns, subprocess; subprocess.run(['ls', '/'], stdout=subprocess.DEVNULL); "
-           f"import os; print('planted ls ran' if os.path.exists({str(marker)!r}) else 'system ls ran')"],
+           f"import os; print('ls ran: ' + ('the planted one' if os.path.exists({str(marker)!r}) else 'the system one'))"],
           env=env, needle="ls ran")
 
     (root / "trials.json").write_text(json.dumps(rows, indent=2))

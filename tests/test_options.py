@@ -84,3 +84,18 @@ def test_a_batch_larger_than_memory_is_one_line(procedural_scene, tmp_path):
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith("frugalnerf: error: out of memory at step 0 (1000000000000 training + 256 novel rays per step")
     assert "--pipeline.datamanager.train-num-rays-per-batch" in last
+    assert "asked for 320.0 GB" in last and "GB free" in last  # 4e10 patches x 8-byte indices, and the limit
+
+
+def test_out_of_memory_is_recognised_from_both_allocators():
+    import torch
+
+    from frugalnerf_ns.trainer import is_out_of_memory, memory_shortfall
+
+    cpu = RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: "
+                       "you tried to allocate 320000000000 bytes. Error code 12 (Cannot allocate memory)")
+    assert is_out_of_memory(cpu) and memory_shortfall(cpu, "cpu").startswith("asked for 320.0 GB, ")
+    cuda = torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79 GiB")
+    assert is_out_of_memory(cuda) and memory_shortfall(cuda, "cpu").startswith("asked for 2.1 GB, ")
+    assert not is_out_of_memory(RuntimeError("The size of tensor a (3) must match the size of tensor b (4)"))
+    assert not is_out_of_memory(ValueError("out of memory"))  # only the allocators' errors
