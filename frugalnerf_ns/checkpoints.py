@@ -18,7 +18,7 @@ from typing import Any, Dict, List, Tuple
 import torch
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from frugalnerf_ns.errors import UserError
+from frugalnerf_ns.errors import UserError, one_line_errors
 
 CHECKPOINT_NAME = re.compile(r"^step-(\d+)\.ckpt$")
 STAGING_NAME = ".checkpoint-being-written"  # in the run folder, next to nerfstudio_models
@@ -114,7 +114,8 @@ def use_intact_checkpoints_in_eval_tools() -> None:
         from frugalnerf_ns.pipeline import FrugalPipeline
 
         if isinstance(pipeline, FrugalPipeline):
-            return load_for_evaluation(config, pipeline)
+            with one_line_errors():
+                return load_for_evaluation(config, pipeline)
         return original(config, pipeline)
 
     eval_load_checkpoint.frugalnerf_fallback = True  # type: ignore[attr-defined]

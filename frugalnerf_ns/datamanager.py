@@ -33,9 +33,10 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
 
+from frugalnerf_ns.cache import cache_file_name
 from frugalnerf_ns.data import DataError
 from frugalnerf_ns.mono_depth import load_or_predict
-from frugalnerf_ns.novel_views import nearest_training_views, spiral_focus_depth, spiral_poses
+from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
 from frugalnerf_ns.scene_analysis import (
     CameraLayout,
     SceneType,
@@ -48,7 +49,6 @@ from frugalnerf_ns.scene_analysis import (
 from frugalnerf_ns.sparse_points import (
     SparseDepth,
     TriangulationOptions,
-    cache_file_name,
     cache_key,
     load_sparse_depth,
     points_inside_box,
@@ -202,7 +202,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         ).float().to(self.device)
         self.warp_camera_to_worlds = cameras.camera_to_worlds.float().to(self.device)
         centers = cameras.camera_to_worlds[:, :3, 3]
-        self.train_nearest_view = nearest_training_views(centers, centers, torch.arange(len(centers))).to(self.device)
+        self.train_nearest_view = nearest_other_view(centers, centers, own_view=torch.arange(len(centers))).to(self.device)
         self.scene_layout = self._scene_layout(cameras)
         if self.test_mode == "val":  # training (eval tools and the viewer build this too: no repeats there)
             names = [Path(f).name for f in self.train_dataparser_outputs.image_filenames]
@@ -220,7 +220,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         self.generator = torch.Generator().manual_seed(self.config.seed)
         if self.config.novel_views and self.config.num_novel_rays_per_batch > 0 and self.scene_type != "360":
             self.novel_cameras = self._spiral_cameras(cameras)
-            self.novel_nearest_view = nearest_training_views(self.novel_cameras.camera_to_worlds[:, :3, 3], centers).to(
+            self.novel_nearest_view = nearest_other_view(self.novel_cameras.camera_to_worlds[:, :3, 3], centers).to(
                 self.device
             )
             self.novel_ray_generator = RayGenerator(self.novel_cameras.to(self.device))

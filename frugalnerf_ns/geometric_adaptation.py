@@ -15,10 +15,11 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from frugalnerf_ns import losses
+from frugalnerf_ns.novel_views import nearest_other_view
 from frugalnerf_ns.reprojection import (
     ErrorKind,
     Warp,
-    geometric_adaptation_loss,
     patch_reprojection_error,
     select_pseudo_depth,
     warp_to_views,
@@ -92,10 +93,10 @@ def cross_scale_geometric_adaptation(
     errors = torch.where(usable[None], errors, torch.full_like(errors, float("inf")))
     pseudo = select_pseudo_depth(errors, loss_depths, threshold)
     train, novel = slice(0, num_train_rays), slice(num_train_rays, num_rays)
-    loss_train = geometric_adaptation_loss(
+    loss_train = losses.geometric_adaptation_loss(
         loss_depths[:, train], pseudo._replace(depth=pseudo.depth[train], reliable=pseudo.reliable[train])
     )
-    loss_novel = geometric_adaptation_loss(
+    loss_novel = losses.geometric_adaptation_loss(
         loss_depths[:, novel], pseudo._replace(depth=pseudo.depth[novel], reliable=pseudo.reliable[novel])
     )
     chosen = torch.where(pseudo.reliable, pseudo.scale, torch.full_like(pseudo.scale, -1))
@@ -106,23 +107,6 @@ def cross_scale_geometric_adaptation(
 # orange; rays left out (no scale within the threshold, or no training view to warp into) dark grey.
 SCALE_CHOICE_COLORS = ((0.89, 0.10, 0.11), (0.22, 0.49, 0.72), (0.30, 0.69, 0.29), (1.00, 0.50, 0.00))
 LEFT_OUT_COLOR = (0.15, 0.15, 0.15)
-
-
-def nearest_other_camera(
-    origins: Float[Tensor, "rays 3"], camera_to_worlds: Float[Tensor, "views 3 4"], same_camera_fraction: float = 1e-3
-) -> Int[Tensor, "rays"]:
-    """Training view whose centre is closest to each ray's origin, skipping a camera the ray starts in.
-
-    A ray cast from a training camera itself must warp into another view (warping into its own view gives
-    every depth the same error), as training rays do. "Starts in" means closer than ``same_camera_fraction``
-    of the widest training baseline. -1 where no other view exists.
-    """
-    centers = camera_to_worlds[:, :3, 3].double()
-    baseline = torch.cdist(centers, centers).max() if len(centers) > 1 else centers.new_tensor(0.0)
-    distance = torch.cdist(origins.double(), centers)
-    distance = torch.where(distance <= same_camera_fraction * baseline, torch.full_like(distance, float("inf")), distance)
-    best = distance.argmin(dim=-1)
-    return torch.where(torch.isfinite(distance.min(dim=-1).values), best, torch.full_like(best, -1))
 
 
 def pseudo_ground_truth_scale(
@@ -142,7 +126,8 @@ def pseudo_ground_truth_scale(
     The rays are treated as novel-view rays: single pixels, the rendered colour as the source (Eq. 6),
     warped into the nearest training view that is not the ray's own camera.
     """
-    nearest = nearest_other_camera(origins, camera_to_worlds)
+    # A render camera can sit in a training camera: "own" views are those within 1e-3 of the baseline.
+    nearest = nearest_other_view(origins, camera_to_worlds[:, :3, 3], same_position_fraction=1e-3)
     return cross_scale_geometric_adaptation(
         origins, directions, metric_depths, metric_depths, rendered_colors.detach(), nearest, 0, 1,
         images, camera_to_worlds, intrinsics, threshold, kind,

@@ -1,7 +1,8 @@
-"""FrugalNeRF's loss terms, one function each (pure torch).
+"""FrugalNeRF's loss terms, one function each (pure torch): every term the model adds to its objective.
 
-Eq. numbers refer to ``../shared/paper/frugalnerf-paper.tex``. The geometric adaptation terms (Eq. 2-10)
-live with their geometry in ``reprojection.py``.
+Eq. numbers refer to ``../shared/paper/frugalnerf-paper.tex``. What the geometric adaptation loss compares
+(the reprojection error and the pseudo depth, Eq. 2-4 and 6-8) is geometry and lives in
+``reprojection.py``; the loss itself (Eq. 5, 9) is here.
 """
 
 from __future__ import annotations
@@ -9,8 +10,10 @@ from __future__ import annotations
 from typing import Optional, Sequence, Tuple
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
+
+from frugalnerf_ns.reprojection import PseudoDepth
 
 
 def multiscale_color_loss(
@@ -134,3 +137,52 @@ def loss_weight_schedule(step: int, total_steps: int, ratio: float) -> float:
     if ratio <= 0:
         raise ValueError(f"loss weight decay ratio must be positive, got {ratio}")
     return float(ratio ** (min(max(step, 0), total_steps) / total_steps))
+
+
+def geometric_adaptation_loss(
+    depths: Float[Tensor, "scales rays"], pseudo: PseudoDepth
+) -> Float[Tensor, ""]:
+    """Eq. 5 (train rays) / Eq. 9 (novel rays): sum over scales of the squared difference between each
+    scale's depth and the pseudo depth, averaged over the reliable rays (the paper sums over rays; a mean
+    keeps lambda_geo independent of the batch size). 0 when no ray is reliable."""
+    weight = pseudo.reliable.to(depths.dtype)
+    squared = (depths - pseudo.depth[None]) ** 2
+    return (squared * weight[None]).sum() / weight.sum().clamp_min(1.0)
+
+
+def depth_smoothness_loss(depth: Float[Tensor, "patches 2 2"]) -> Float[Tensor, ""]:
+    """Patch-wise depth smoothness (supp. "Losses", RegNeRF): squared differences between horizontally and
+    vertically adjacent depths of each 2x2 novel-view patch, averaged over patches."""
+    horizontal = (depth[:, :, 1:] - depth[:, :, :-1]) ** 2
+    vertical = (depth[:, 1:, :] - depth[:, :-1, :]) ** 2
+    return horizontal.sum(dim=(1, 2)).mean() + vertical.sum(dim=(1, 2)).mean()
+
+
+def inverse_depth_loss(rendered: Float[Tensor, "rays"], target: Float[Tensor, "rays"], min_depth: float = 1e-3) -> Tensor:
+    """L_sd (paper Eq. 11, DS-NeRF; reference code: MSE on inverse depth) between rendered and sparse metric
+    depths. Rendered depth is clamped at ``min_depth`` so an empty ray (depth ~0) cannot blow the loss up."""
+    if rendered.numel() == 0:
+        return rendered.sum() * 0.0
+    return torch.mean((1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2)
+
+
+def pearson_depth_loss(rendered: Float[Tensor, "rays"], predicted: Float[Tensor, "rays"], eps: float = 1e-8) -> Tensor:
+    """L_d = 1 - Pearson correlation between rendered and predicted depth (0 when perfectly correlated,
+    up to 2 when anti-correlated). Fewer than two rays, or a constant input, give no signal (0)."""
+    if rendered.numel() < 2:
+        return rendered.sum() * 0.0
+    x = rendered - rendered.mean()
+    y = predicted - predicted.mean()
+    denom = torch.sqrt((x * x).sum() * (y * y).sum())
+    if float(denom.detach()) <= eps:
+        return rendered.sum() * 0.0
+    return 1.0 - (x * y).sum() / denom
+
+
+def per_view_pearson_loss(
+    rendered: Float[Tensor, "rays"], predicted: Float[Tensor, "rays"], view: Int[Tensor, "rays"]
+) -> Tensor:
+    """Mean of ``pearson_depth_loss`` over the training views present in the batch (each view's prediction
+    has its own scale and shift)."""
+    views = torch.unique(view)
+    return sum(pearson_depth_loss(rendered[view == v], predicted[view == v]) for v in views) / max(1, len(views))

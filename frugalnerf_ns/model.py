@@ -36,9 +36,7 @@ from frugalnerf_ns.geometric_adaptation import (
 )
 from frugalnerf_ns.field import DensityActivation, FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
-from frugalnerf_ns.reprojection import ErrorKind, depth_smoothness_loss
-from frugalnerf_ns.mono_depth import per_view_pearson_loss
-from frugalnerf_ns.sparse_points import inverse_depth_loss
+from frugalnerf_ns.reprojection import ErrorKind
 from frugalnerf_ns.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.raymarch import RaySegments, composite_rgb, composite_weights, intersect_aabb, march_steps
 
@@ -518,14 +516,14 @@ class FrugalNeRFModel(Model):
             start = num_train + num_novel
             target = batch["sparse_depth"].to(self.device)
             sparse = sum(
-                inverse_depth_loss(outputs[f"depth{scale_suffix(s)}"][start:, 0], target) for s in range(self.field.num_scales)
+                losses.inverse_depth_loss(outputs[f"depth{scale_suffix(s)}"][start:, 0], target) for s in range(self.field.num_scales)
             )
             terms["sparse_depth"] = cfg.sparse_depth_weight * self.loss_schedule_factor * sparse
         if "mono_depth" in batch and cfg.mono_depth_weight > 0:
             view = batch["indices"][:, 0].to(self.device)
             predicted = batch["mono_depth"].to(self.device)
             mono = sum(
-                per_view_pearson_loss(outputs[f"depth{scale_suffix(s)}"][:num_train, 0], predicted, view)
+                losses.per_view_pearson_loss(outputs[f"depth{scale_suffix(s)}"][:num_train, 0], predicted, view)
                 for s in range(self.field.num_scales)
             )
             terms["mono_depth"] = cfg.mono_depth_weight * self.loss_schedule_factor * mono
@@ -534,7 +532,7 @@ class FrugalNeRFModel(Model):
             for scale in range(self.field.num_scales):
                 depth = outputs[f"render_depth{scale_suffix(scale)}"][num_train:, 0]
                 patches = depth[: num_novel // 4 * 4].reshape(-1, 2, 2)
-                smooth = smooth + depth_smoothness_loss(patches) / self.field.stride(scale) ** 2
+                smooth = smooth + losses.depth_smoothness_loss(patches) / self.field.stride(scale) ** 2
             terms["depth_smoothness"] = cfg.depth_smoothness_weight * self.loss_schedule_factor * smooth
         return terms
 

@@ -14,34 +14,13 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
-from jaxtyping import Float, Int
+from jaxtyping import Float
 from torch import Tensor
 
+from frugalnerf_ns.cache import load_keyed_arrays, save_keyed_arrays
 from frugalnerf_ns.data import DataError
 
 OPTION = "--pipeline.datamanager.mono-depth-model"
-
-
-def pearson_depth_loss(rendered: Float[Tensor, "rays"], predicted: Float[Tensor, "rays"], eps: float = 1e-8) -> Tensor:
-    """L_d = 1 - Pearson correlation between rendered and predicted depth (0 when perfectly correlated,
-    up to 2 when anti-correlated). Fewer than two rays, or a constant input, give no signal (0)."""
-    if rendered.numel() < 2:
-        return rendered.sum() * 0.0
-    x = rendered - rendered.mean()
-    y = predicted - predicted.mean()
-    denom = torch.sqrt((x * x).sum() * (y * y).sum())
-    if float(denom.detach()) <= eps:
-        return rendered.sum() * 0.0
-    return 1.0 - (x * y).sum() / denom
-
-
-def per_view_pearson_loss(
-    rendered: Float[Tensor, "rays"], predicted: Float[Tensor, "rays"], view: Int[Tensor, "rays"]
-) -> Tensor:
-    """Mean of ``pearson_depth_loss`` over the training views present in the batch (each view's prediction
-    has its own scale and shift)."""
-    views = torch.unique(view)
-    return sum(pearson_depth_loss(rendered[view == v], predicted[view == v]) for v in views) / max(1, len(views))
 
 
 def _transformers():
@@ -110,22 +89,16 @@ def load_or_predict(
     keeps Pearson correlation meaningful without dividing by near-zero disparities."""
     arrays = [np.round(image.cpu().numpy() * 255).astype(np.uint8) for image in images]
     key = mono_depth_key(model_path, arrays, disparity, input_size)
-    if cache is not None and cache.exists():
-        try:
-            with np.load(cache, allow_pickle=False) as data:
-                if str(data["key"]) == key and data["depth"].shape == tuple(images.shape[:3]):
-                    return torch.from_numpy(data["depth"]).float()
-        except Exception:  # noqa: BLE001 - unreadable cache: predict again
-            pass
+    if cache is not None:
+        cached, _ = load_keyed_arrays(cache, key)  # missing, stale or unreadable: predict again
+        if cached is not None and cached.get("depth", np.empty(0)).shape == tuple(images.shape[:3]):
+            return torch.from_numpy(cached["depth"]).float()
     depth = predict_depth(load_depth_model(model_path), images.cpu(), input_size)
     if disparity:
         depth = -depth
     if cache is not None:
         try:
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cache.with_name(cache.name + ".tmp.npz")
-            np.savez(tmp, key=np.array(key), depth=depth.numpy())
-            tmp.replace(cache)
+            save_keyed_arrays(cache, key, depth=depth.numpy())
         except OSError:
             pass  # a read-only data folder: predictions stay in memory
     return depth

@@ -9,12 +9,12 @@ from __future__ import annotations
 import math
 from typing import Optional
 
-import numpy as np
 import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
 from frugalnerf_ns.camera_conventions import average_pose
+from frugalnerf_ns.scene_analysis import axes_conditioning, focus_point
 
 
 def spiral_poses(
@@ -50,14 +50,10 @@ def spiral_poses(
 def optical_axes_focus(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Optional[Float[Tensor, "3"]]:
     """Least-squares point closest to every camera's optical axis (where the cameras look together), or
     None when the axes are (nearly) parallel and the point is ill-defined."""
-    poses = camera_to_worlds.detach().cpu().double()
-    origins, axes = poses[:, :, 3], -poses[:, :, 2]
-    projector = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]  # I - d d^T per camera
-    system = projector.sum(dim=0)
     # Two axes 2 degrees apart give a smallest eigenvalue ~ 1 - cos(2 deg) = 6e-4.
-    if float(torch.linalg.eigvalsh(system)[0]) < 5e-4:
+    if axes_conditioning(camera_to_worlds) < 5e-4:
         return None
-    return torch.linalg.solve(system, (projector @ origins[:, :, None]).sum(dim=0))[:, 0]
+    return focus_point(camera_to_worlds, ridge=0.0)
 
 
 def spiral_focus_depth(
@@ -87,21 +83,26 @@ def spiral_focus_depth(
     )
 
 
-def nearest_training_views(
+def nearest_other_view(
     query_centers: Float[Tensor, "queries 3"],
-    train_centers: Float[Tensor, "views 3"],
-    query_train_index: Optional[Int[Tensor, "queries"]] = None,
+    view_centers: Float[Tensor, "views 3"],
+    own_view: Optional[Int[Tensor, "queries"]] = None,
+    same_position_fraction: float = 0.0,
 ) -> Int[Tensor, "queries"]:
-    """Index of the training camera whose centre is closest to each query camera's centre.
+    """Index of the training view whose centre is closest to each query's centre (a camera or a ray origin),
+    never the query's own view: -1 where no other view exists (a single training view).
 
-    ``query_train_index`` gives, for queries that are training views themselves, their own index (-1 for
-    novel views): a training view never picks itself. Where no other training view exists (a single
-    training view) the answer is -1.
-    """
-    distance = torch.cdist(query_centers.double(), train_centers.double())
-    if query_train_index is not None:
-        own = query_train_index >= 0
+    "Own" is ``own_view`` where a query is a training view itself (-1 for the others), and any view whose
+    centre lies within ``same_position_fraction`` of the widest training baseline of the query (a ray cast
+    from a training camera itself: warping into its own view gives every depth the same error)."""
+    centers = view_centers.double()
+    distance = torch.cdist(query_centers.double(), centers)
+    if same_position_fraction > 0:
+        baseline = torch.cdist(centers, centers).max() if len(centers) > 1 else centers.new_tensor(0.0)
+        distance = torch.where(distance <= same_position_fraction * baseline, torch.full_like(distance, float("inf")), distance)
+    if own_view is not None:
+        own = own_view >= 0
         rows = own.nonzero(as_tuple=True)[0]
-        distance[rows, query_train_index[own]] = float("inf")
+        distance[rows, own_view[own]] = float("inf")
     best = distance.argmin(dim=-1)
     return torch.where(torch.isfinite(distance.min(dim=-1).values), best, torch.full_like(best, -1))

@@ -18,9 +18,7 @@ import sys
 from pathlib import Path
 from typing import Dict, List, Optional
 
-import numpy as np
 import torch
-from PIL import Image
 
 
 def patch_torchmetrics_lpips() -> None:
@@ -81,17 +79,14 @@ def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, flo
 
     _, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=at_step if step is not None else None)
     dataset = pipeline.datamanager.eval_dataset
-    masks = dataset.metadata.get("eval_mask_filenames")
     lpips = OfflineLPIPS().to(pipeline.device)
     scores: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": []}
     pipeline.eval()
     for index in range(len(dataset)):
         camera = dataset.cameras[index : index + 1].to(pipeline.device)
-        image = dataset[index]["image"][..., :3].to(pipeline.device)
-        mask = None
-        if masks:
-            with Image.open(masks[index]) as img:
-                mask = torch.from_numpy(np.array(img.convert("L").resize(image.shape[1::-1])) > 127)[..., None]
+        data = dataset[index]  # FrugalDataset: the image, and the eval mask where the dataparser lists one
+        image = data["image"][..., :3].to(pipeline.device)
+        mask = data.get("eval_mask")
         rgb = render_test_rgb(pipeline.model, camera, mask)
         if mask is None:
             mask = torch.ones(*image.shape[:2], 1, dtype=torch.bool)

@@ -15,6 +15,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from frugalnerf_ns.checkpoints import use_intact_checkpoints_in_eval_tools
+from frugalnerf_ns.errors import one_line_errors
 
 
 @dataclass
@@ -26,7 +27,9 @@ class FrugalPipelineConfig(VanillaPipelineConfig):
 
 class FrugalPipeline(VanillaPipeline):
     def __init__(self, config: FrugalPipelineConfig, device: str, *args, **kwargs) -> None:
-        super().__init__(config, device, *args, **kwargs)
+        # Every nerfstudio command that reads data builds the pipeline: bad data ends it with one line.
+        with one_line_errors():
+            super().__init__(config, device, *args, **kwargs)
         use_intact_checkpoints_in_eval_tools()
         images = getattr(self.datamanager, "warp_images", None)
         set_views = getattr(self.model, "set_reference_views", None)

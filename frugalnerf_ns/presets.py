@@ -13,8 +13,7 @@ from importlib import resources
 from typing import Any, Dict, Mapping, Tuple
 
 import yaml
-import torch
-from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
+from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
@@ -85,8 +84,6 @@ def base_trainer_config(method_name: str) -> FrugalTrainerConfig:
         # the process alive after training; interactive runs keep nerfstudio's behaviour.
         viewer=ViewerConfig(num_rays_per_chunk=1 << 14, quit_on_train_completion=not _interactive()),
         vis="viewer",
-        # nerfstudio defaults to CUDA and fails on a CPU-only machine; default to what this machine has.
-        machine=MachineConfig(device_type="cuda" if torch.cuda.is_available() else "cpu"),
     )
 
 

@@ -163,20 +163,3 @@ def select_pseudo_depth(
     return PseudoDepth(depth, scale, best_error <= threshold)
 
 
-def geometric_adaptation_loss(
-    depths: Float[Tensor, "scales rays"], pseudo: PseudoDepth
-) -> Float[Tensor, ""]:
-    """Eq. 5 (train rays) / Eq. 9 (novel rays): sum over scales of the squared difference between each
-    scale's depth and the pseudo depth, averaged over the reliable rays (the paper sums over rays; a mean
-    keeps lambda_geo independent of the batch size). 0 when no ray is reliable."""
-    weight = pseudo.reliable.to(depths.dtype)
-    squared = (depths - pseudo.depth[None]) ** 2
-    return (squared * weight[None]).sum() / weight.sum().clamp_min(1.0)
-
-
-def depth_smoothness_loss(depth: Float[Tensor, "patches 2 2"]) -> Float[Tensor, ""]:
-    """Patch-wise depth smoothness (supp. "Losses", RegNeRF): squared differences between horizontally and
-    vertically adjacent depths of each 2x2 novel-view patch, averaged over patches."""
-    horizontal = (depth[:, :, 1:] - depth[:, :, :-1]) ** 2
-    vertical = (depth[:, 1:, :] - depth[:, :-1, :]) ** 2
-    return horizontal.sum(dim=(1, 2)).mean() + vertical.sum(dim=(1, 2)).mean()

@@ -45,22 +45,35 @@ def viewing_directions(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Float[Te
     return torch.nn.functional.normalize(-camera_to_worlds[:, :3, 2].double(), dim=-1)
 
 
-def focus_point(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Float[Tensor, "3"]:
-    """Least-squares point nearest every optical axis.
-
-    Nearly parallel axes (a forward-facing capture) make the plain solve ill-conditioned: a small ridge
-    towards the point one mean camera distance ahead of the cameras keeps it finite and sensible there.
-    """
+def _axes_system(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Tuple[Tensor, Tensor]:
+    """sum_i (I - d_i d_i^T) and sum_i (I - d_i d_i^T) c_i: the normal equations of the point nearest every
+    optical axis (camera centre c_i, viewing direction d_i)."""
     centers = camera_to_worlds[:, :3, 3].double()
     directions = viewing_directions(camera_to_worlds)
-    eye = torch.eye(3, dtype=torch.float64)
-    projectors = eye - directions[:, :, None] * directions[:, None, :]  # [views, 3, 3]
-    spread = (centers - centers.mean(0)).norm(dim=-1).mean()
-    scale = float(spread) if spread > 0 else 1.0
-    ahead = centers.mean(0) + directions.mean(0) * scale
-    ridge = 1e-3
-    lhs = projectors.sum(0) + ridge * eye
-    rhs = (projectors @ centers[:, :, None]).sum(0)[:, 0] + ridge * ahead
+    projectors = torch.eye(3, dtype=torch.float64) - directions[:, :, None] * directions[:, None, :]
+    return projectors.sum(0), (projectors @ centers[:, :, None]).sum(0)[:, 0]
+
+
+def axes_conditioning(camera_to_worlds: Float[Tensor, "views 3 4"]) -> float:
+    """Smallest eigenvalue of the focus point's normal matrix: ~0 when the optical axes are (nearly)
+    parallel and no point is nearest to all of them."""
+    return float(torch.linalg.eigvalsh(_axes_system(camera_to_worlds)[0])[0])
+
+
+def focus_point(camera_to_worlds: Float[Tensor, "views 3 4"], ridge: float = 1e-3) -> Float[Tensor, "3"]:
+    """Least-squares point nearest every optical axis.
+
+    Nearly parallel axes (a forward-facing capture) make the plain solve ill-conditioned: a small ``ridge``
+    towards the point one mean camera distance ahead of the cameras keeps it finite and sensible there
+    (0: the plain solve, for callers that check ``axes_conditioning`` first).
+    """
+    lhs, rhs = _axes_system(camera_to_worlds)
+    if ridge > 0:
+        centers = camera_to_worlds[:, :3, 3].double()
+        spread = (centers - centers.mean(0)).norm(dim=-1).mean()
+        scale = float(spread) if spread > 0 else 1.0
+        ahead = centers.mean(0) + viewing_directions(camera_to_worlds).mean(0) * scale
+        lhs, rhs = lhs + ridge * torch.eye(3, dtype=torch.float64), rhs + ridge * ahead
     return torch.linalg.solve(lhs, rhs)
 
 

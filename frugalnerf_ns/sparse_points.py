@@ -23,6 +23,7 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from frugalnerf_ns.cache import load_keyed_arrays, save_keyed_arrays
 from frugalnerf_ns.reprojection import project_to_camera
 
 CACHE_VERSION = 1
@@ -204,14 +205,6 @@ def points_inside_box(sparse: SparseDepth, aabb: Float[Tensor, "2 3"]) -> Sparse
     )
 
 
-def inverse_depth_loss(rendered: Float[Tensor, "rays"], target: Float[Tensor, "rays"], min_depth: float = 1e-3) -> Tensor:
-    """L_sd (paper Eq. 11, DS-NeRF; reference code: MSE on inverse depth) between rendered and sparse metric
-    depths. Rendered depth is clamped at ``min_depth`` so an empty ray (depth ~0) cannot blow the loss up."""
-    if rendered.numel() == 0:
-        return rendered.sum() * 0.0
-    return torch.mean((1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2)
-
-
 # ---- pycolmap: features and matches ----------------------------------------------------------------------------
 def _pycolmap():
     try:
@@ -288,28 +281,23 @@ def cache_key(
 
 
 def save_sparse_depth(path: Path, sparse: SparseDepth, key: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(
-        tmp, key=np.array(key), points=sparse.points.double().numpy(), view=sparse.view.numpy(),
-        point=sparse.point.numpy(), pixels=sparse.pixels.double().numpy(), depth=sparse.depth.double().numpy(),
+    save_keyed_arrays(
+        path, key, points=sparse.points.double().numpy(), view=sparse.view.numpy(), point=sparse.point.numpy(),
+        pixels=sparse.pixels.double().numpy(), depth=sparse.depth.double().numpy(),
     )
-    tmp.replace(path)  # atomic: an interrupted write never leaves a half file under the real name
 
 
 def load_sparse_depth(path: Path, key: str) -> Tuple[Optional[SparseDepth], str]:
     """(points, "") from a cache file written for ``key``; (None, why) when it is missing, stale or corrupt."""
-    if not path.exists():
-        return None, "missing"
+    arrays, why = load_keyed_arrays(path, key)
+    if arrays is None:
+        return None, why
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if str(data["key"]) != key:
-                return None, "stale (training images, cameras or options changed)"
-            sparse = SparseDepth(
-                torch.from_numpy(data["points"]), torch.from_numpy(data["view"]).long(),
-                torch.from_numpy(data["point"]).long(), torch.from_numpy(data["pixels"]), torch.from_numpy(data["depth"]),
-            )
-    except Exception as err:  # noqa: BLE001 - any unreadable file is rebuilt, never used
+        sparse = SparseDepth(
+            torch.from_numpy(arrays["points"]), torch.from_numpy(arrays["view"]).long(),
+            torch.from_numpy(arrays["point"]).long(), torch.from_numpy(arrays["pixels"]), torch.from_numpy(arrays["depth"]),
+        )
+    except (KeyError, TypeError) as err:
         return None, f"corrupt ({type(err).__name__}: {err})"
     n = sparse.view.shape[0]
     shapes_ok = sparse.points.ndim == 2 and sparse.points.shape[-1] == 3 and sparse.pixels.shape == (n, 2)
@@ -319,12 +307,3 @@ def load_sparse_depth(path: Path, key: str) -> Tuple[Optional[SparseDepth], str]
     if n and (int(sparse.point.max()) >= sparse.points.shape[0] or bool((sparse.depth <= 0).any())):
         return None, "corrupt (inconsistent arrays)"
     return sparse, ""
-
-
-def cache_file_name(view_names: Sequence[str], width: int, height: int, kind: str = "sparse_depth") -> str:
-    """Cache file of one training split and image size, e.g. ``sparse_depth_6-13_504x378.npz`` (``kind``
-    names what is cached: sparse points, or mono_depth predictions)."""
-    views = "-".join(Path(name).stem for name in view_names)
-    if len(views) > 80:  # many views: keep the name short, still unique
-        views = hashlib.sha1(views.encode()).hexdigest()[:12]
-    return f"{kind}_{views}_{width}x{height}.npz"

@@ -31,6 +31,7 @@ from frugalnerf_ns.checkpoints import (
     read_checkpoint_or_exit,
     write_checkpoint,
 )
+from frugalnerf_ns.errors import one_line_errors
 from frugalnerf_ns.options import OptionError, flag, validate_options
 
 
@@ -86,10 +87,19 @@ def remove_config_only_run_folder(run_dir: Path, output_dir: Path) -> bool:
 class FrugalTrainer(Trainer):
     config: FrugalTrainerConfig
 
+    def __init__(self, config: FrugalTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        # nerfstudio defaults to CUDA and fails on a machine without it; train on the CPU there. Probed here,
+        # when a FrugalNeRF run starts, not when the presets are built (every nerfstudio command builds them).
+        if config.machine.device_type == "cuda" and not torch.cuda.is_available():
+            CONSOLE.print("frugalnerf: no CUDA device: training on the CPU (--machine.device-type cpu says so).")
+            config.machine.device_type = "cpu"
+        super().__init__(config, local_rank, world_size)
+
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         try:
-            validate_options(self.config)
-            super().setup(test_mode)
+            with one_line_errors():
+                validate_options(self.config)
+                super().setup(test_mode)
         except BaseException:
             # nerfstudio wrote config.yml before calling us: a run that never started leaves no folder.
             remove_config_only_run_folder(self.base_dir, Path(self.config.output_dir))
@@ -136,6 +146,10 @@ class FrugalTrainer(Trainer):
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
 
     # ---- training ---------------------------------------------------------------------------------------
+    def train(self) -> None:
+        with one_line_errors():  # out of memory, a checkpoint that cannot be written
+            super().train()
+
     def train_iteration(self, step: int):
         try:
             return super().train_iteration(step)

@@ -144,7 +144,6 @@ def pixel_rays(cameras, pixels: List[Tuple[float, float]]):
 
 def closest_points(o1, d1, o2, d2):
     """Closest points of two rays, and their distances along the rays."""
-    import torch
 
     w = o1 - o2
     a, b, c = (d1 * d1).sum(), (d1 * d2).sum(), (d2 * d2).sum()

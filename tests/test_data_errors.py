@@ -110,3 +110,19 @@ def test_invalid_json(tmp_path, procedural_scene):
 
 def test_good_scene_passes(procedural_scene):
     assert check_scene_folder(procedural_scene).name == "transforms.json"
+
+
+def test_data_errors_are_ordinary_exceptions_for_library_callers(tmp_path):
+    from frugalnerf_ns.errors import one_line_errors
+
+    try:
+        check_scene_folder(tmp_path / "missing")
+    except Exception as err:  # noqa: BLE001 - what a library caller writes
+        caught = err
+    assert isinstance(caught, DataError) and not isinstance(caught, SystemExit)
+    assert str(caught) == f"frugalnerf: error: --data {tmp_path / 'missing'} does not exist"
+    # At a command boundary the same line becomes the exit message (status 1, no traceback).
+    with pytest.raises(SystemExit) as exit_info:
+        with one_line_errors():
+            check_scene_folder(tmp_path / "missing")
+    assert exit_info.value.code == str(caught)

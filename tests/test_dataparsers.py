@@ -5,7 +5,6 @@ expected pixels of every camera must meet in one point in front of all of them. 
 OpenCV/OpenGL mistakes make them miss.
 """
 
-import shutil
 from pathlib import Path
 
 import numpy as np

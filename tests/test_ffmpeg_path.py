@@ -3,7 +3,6 @@ planted in the shared temp folder can run in place of a system program."""
 
 import os
 import shutil
-import stat
 import subprocess
 import sys
 from pathlib import Path

@@ -10,12 +10,12 @@ from frugalnerf_ns.geometric_adaptation import (
     SCALE_CHOICE_COLORS,
     ScaleFractionHistory,
     cross_scale_geometric_adaptation,
-    nearest_other_camera,
     pseudo_ground_truth_scale,
     scale_choice_colors,
     scale_statistics,
 )
 from frugalnerf_ns.model import FrugalNeRFModelConfig
+from frugalnerf_ns.novel_views import nearest_other_view
 from frugalnerf_ns.reprojection import unproject_along_rays
 from tests.test_datamanager import manager_for
 from tests.test_reprojection import INTRINSICS, camera, patch_pixels, pixel_rays, plane_depth, render_plane, texture
@@ -63,7 +63,7 @@ def test_losses_include_geometric_adaptation_and_smoothness_with_gradients(model
 
 
 def test_sparse_depth_loss_reads_the_trailing_rays_at_every_scale(model_and_batch):
-    from frugalnerf_ns.sparse_points import inverse_depth_loss
+    from frugalnerf_ns.losses import inverse_depth_loss
 
     model, bundle, batch = model_and_batch
     outputs = model(bundle)
@@ -125,9 +125,9 @@ def test_scale_history_writes_json_and_png(tmp_path):
 def test_viewer_rays_warp_into_the_nearest_camera_they_do_not_start_in():
     c2w = torch.stack([camera(), camera(x=1.0), camera(x=5.0)])
     origins = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.0, 0.0], [4.0, 0.0, 0.0], [1.0 + 1e-5, 0.0, 0.0]])
-    assert nearest_other_camera(origins, c2w).tolist() == [1, 0, 0, 2, 0]
+    assert nearest_other_view(origins, c2w[:, :3, 3], same_position_fraction=1e-3).tolist() == [1, 0, 0, 2, 0]
     # A single training view: a ray from it has nowhere to warp; a ray from elsewhere warps into it.
-    assert nearest_other_camera(origins[:2], c2w[:1]).tolist() == [-1, 0]
+    assert nearest_other_view(origins[:2], c2w[:1, :3, 3], same_position_fraction=1e-3).tolist() == [-1, 0]
 
 
 @pytest.mark.parametrize("true_scale", [0, 1, 2])

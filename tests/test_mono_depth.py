@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from frugalnerf_ns.data import DataError
-from frugalnerf_ns.mono_depth import load_depth_model, load_or_predict, pearson_depth_loss, per_view_pearson_loss
+from frugalnerf_ns.losses import pearson_depth_loss, per_view_pearson_loss
+from frugalnerf_ns.mono_depth import load_depth_model, load_or_predict
 
 transformers = pytest.importorskip("transformers")
 

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from frugalnerf_ns.novel_views import nearest_training_views, spiral_focus_depth, spiral_poses
+from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
 
 
 def looking_down_minus_z(centers):
@@ -71,14 +71,14 @@ def test_focus_depth_for_forward_facing_and_object_scenes():
 def test_nearest_training_view_never_picks_itself():
     train = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 2.5, 0.0]])
     own = torch.arange(4)
-    assert nearest_training_views(train, train, own).tolist() == [1, 0, 1, 0]
+    assert nearest_other_view(train, train, own_view=own).tolist() == [1, 0, 1, 0]
     novel = torch.tensor([[2.2, 0.0, 0.0], [0.1, 2.0, 0.0], [0.0, 0.0, 0.0]])
-    assert nearest_training_views(novel, train, torch.full((3,), -1)).tolist() == [2, 3, 0]
-    assert nearest_training_views(novel, train).tolist() == [2, 3, 0]
+    assert nearest_other_view(novel, train, own_view=torch.full((3,), -1)).tolist() == [2, 3, 0]
+    assert nearest_other_view(novel, train).tolist() == [2, 3, 0]
 
 
 def test_a_single_training_view_has_no_nearest_other_view():
     single = torch.zeros(1, 3)
-    assert nearest_training_views(single, single, torch.zeros(1, dtype=torch.long)).tolist() == [-1]
-    assert nearest_training_views(torch.ones(2, 3), single).tolist() == [0, 0]
+    assert nearest_other_view(single, single, own_view=torch.zeros(1, dtype=torch.long)).tolist() == [-1]
+    assert nearest_other_view(torch.ones(2, 3), single).tolist() == [0, 0]
     assert math.isfinite(float(spiral_poses(looking_down_minus_z([[0.0, 0.0, 0.0]]), 2.0, 4, 1, 1.0, 0.5).sum()))

@@ -14,8 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from frugalnerf_ns.field import FrugalNeRFField
-from frugalnerf_ns.geometric_adaptation import nearest_other_camera, pseudo_ground_truth_scale
-from frugalnerf_ns.novel_views import nearest_training_views, spiral_poses
+from frugalnerf_ns.geometric_adaptation import pseudo_ground_truth_scale
+from frugalnerf_ns.novel_views import nearest_other_view, spiral_poses
 from frugalnerf_ns.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
 from frugalnerf_ns.reprojection import project_to_camera, unproject_along_rays, warp_to_views
 from frugalnerf_ns.scene_analysis import classify_camera_layout
@@ -207,11 +207,11 @@ def test_pseudo_depth_selection_works_at_every_scene_scale(log_scale):
 def test_nearly_identical_training_cameras(baseline):
     cameras = torch.stack([camera(), camera(x=baseline)])
     centers = cameras[:, :3, 3]
-    assert nearest_training_views(centers, centers, torch.arange(2)).tolist() == [1, 0]
+    assert nearest_other_view(centers, centers, own_view=torch.arange(2)).tolist() == [1, 0]
     # A ray from each camera's own centre warps into the other camera, however small the (non-zero)
     # baseline: "the camera it starts in" is relative to the baseline. With no baseline at all both cameras
     # are the one the ray starts in, so there is no other view (-1) rather than a division by 0.
-    nearest = nearest_other_camera(centers.clone(), cameras)
+    nearest = nearest_other_view(centers.clone(), centers, same_position_fraction=1e-3)
     assert nearest.tolist() == ([-1, -1] if baseline == 0.0 else [1, 0])
     layout = classify_camera_layout(cameras)
     assert layout.scene_type == "forward-facing" and finite(layout.focus)

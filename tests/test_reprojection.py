@@ -5,11 +5,10 @@ import math
 import pytest
 import torch
 
+from frugalnerf_ns.losses import depth_smoothness_loss, geometric_adaptation_loss
 from frugalnerf_ns.reprojection import (
     MAX_PIXEL_ERROR,
     Warp,
-    depth_smoothness_loss,
-    geometric_adaptation_loss,
     patch_reprojection_error,
     project_to_camera,
     sample_images,

@@ -7,15 +7,15 @@ import pytest
 import torch
 from PIL import Image, ImageFilter
 
+from frugalnerf_ns.cache import cache_file_name
+from frugalnerf_ns.losses import inverse_depth_loss
 from frugalnerf_ns.procedural_scene import look_at
 from frugalnerf_ns.reprojection import project_to_camera
 from frugalnerf_ns.sparse_points import (
     SparseDepth,
     TriangulationOptions,
     build_tracks,
-    cache_file_name,
     cache_key,
-    inverse_depth_loss,
     load_sparse_depth,
     opencv_projection_matrices,
     save_sparse_depth,
@@ -162,7 +162,7 @@ def _sparse(n=4):
 
 
 def test_cache_round_trip_stale_and_corrupt(tmp_path):
-    path = tmp_path / cache_file_name(["images/image006.png", "images/image013.png"], 504, 378)
+    path = tmp_path / cache_file_name(["images/image006.png", "images/image013.png"], 504, 378, "sparse_depth")
     assert path.name == "sparse_depth_image006-image013_504x378.npz"
     assert load_sparse_depth(path, "k")[1] == "missing"
     sparse = _sparse()
