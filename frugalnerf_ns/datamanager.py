@@ -1,15 +1,11 @@
 """FrugalNeRF's datamanager and dataset.
 
-Every training step returns one ray bundle holding, in this order:
-- training rays sampled as k x k pixel patches (patch-major: the k*k rays of a patch are contiguous);
-- novel-view rays sampled as 2x2 patches from poses on a spiral around the training cameras (paper
-  Sec. 3.4), generated once;
-- rays through sparse points triangulated from the training views (L_sd, ``sparse_points.py``), with the
-  depth each should render.
-The batch says how many rays each group holds and carries what the model needs to warp (Eq. 2-9): all
-training images and their cameras (there are only 2-4) on the model's device, and per ray the index of the
-nearest other training camera. Batches are deterministic under ``seed``. The test dataset adds the
-evaluation object mask (DTU protocol).
+Every training step returns one ray bundle and a ``TrainBatch`` (``batch.py``) naming its three ray groups:
+training rays sampled as k x k pixel patches, novel-view rays in 2x2 patches from spiral poses around the
+training cameras (paper Sec. 3.4, generated once), and rays through sparse points triangulated from the
+training views (L_sd, ``sparse_points.py``), with per ray the training view it is warped into. The training
+images and cameras the warps compare with are set up here once and handed to the model by the pipeline.
+Batches are deterministic under ``seed``. The test dataset adds the evaluation object mask (DTU protocol).
 """
 
 from __future__ import annotations
@@ -33,6 +29,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from torch import Tensor
 
+from frugalnerf_ns.batch import EvalBatch, TrainBatch
 from frugalnerf_ns.cache import cache_file_name
 from frugalnerf_ns.data import DataError
 from frugalnerf_ns.mono_depth import load_or_predict
@@ -374,7 +371,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         cols = left[:, None] + dx.flatten()[None]
         return torch.stack([view[:, None].expand_as(rows), rows, cols], dim=-1).reshape(-1, 3)
 
-    def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
+    def next_train(self, step: int) -> Tuple[RayBundle, TrainBatch]:
         self.train_count += 1
         k = self.config.patch_size
         num_views, height, width = self.train_images.shape[:3]
@@ -382,19 +379,14 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         indices = self._sample_patches(num_patches, num_views, height, width, k)
         indices_dev = indices.to(self.device)
         bundle = self.train_ray_generator(indices_dev)
-        view = indices_dev[:, 0]
-        batch: Dict = {
-            "image": self.train_images[view, indices_dev[:, 1], indices_dev[:, 2]],
-            "indices": indices,
-            "num_train_rays": indices.shape[0],
-            "patch_size": k,
-            "nearest_view": self.train_nearest_view[view],
-            "warp_images": self.warp_images,
-            "warp_camera_to_worlds": self.warp_camera_to_worlds,
-            "warp_intrinsics": self.warp_intrinsics,
-        }
-        if self.mono_depth is not None:
-            batch["mono_depth"] = self.mono_depth[view, indices_dev[:, 1], indices_dev[:, 2]]
+        view, rows, cols = indices_dev.unbind(-1)
+        batch = TrainBatch(
+            image=self.train_images[view, rows, cols],
+            indices=indices,
+            patch_size=k,
+            nearest_view=self.train_nearest_view[view],
+            mono_depth=None if self.mono_depth is None else self.mono_depth[view, rows, cols],
+        )
         if self.novel_cameras is not None and self.novel_nearest_view is not None:
             num_novel = max(1, self.config.num_novel_rays_per_batch // NOVEL_PATCH**2)
             novel_height, novel_width = int(self.novel_cameras.height[0]), int(self.novel_cameras.width[0])
@@ -406,14 +398,18 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             # Novel rays borrow their nearest training camera's index (a valid index for per-image fields).
             novel_bundle.camera_indices = nearest.clamp_min(0)[:, None]
             bundle = concatenate_ray_bundles(bundle, novel_bundle)
-            batch["novel_indices"] = novel
-            batch["nearest_view"] = torch.cat([batch["nearest_view"], nearest])
-        batch["num_novel_rays"] = batch["nearest_view"].shape[0] - batch["num_train_rays"]
+            batch.novel_indices = novel
+            batch.num_novel = novel.shape[0]
+            batch.nearest_view = torch.cat([batch.nearest_view, nearest])
         if self.sparse is not None:
-            sparse_bundle, depth = self._sparse_rays()
+            sparse_bundle, batch.sparse_depth = self._sparse_rays()
             bundle = concatenate_ray_bundles(bundle, sparse_bundle)
-            batch["sparse_depth"] = depth
         return bundle, batch
+
+    def next_eval(self, step: int) -> Tuple[RayBundle, EvalBatch]:
+        """nerfstudio's eval batch (random pixels of a test image), typed."""
+        bundle, batch = super().next_eval(step)
+        return bundle, EvalBatch(image=batch["image"], indices=batch["indices"], eval_mask=batch.get("eval_mask"))
 
     def _train_rays_per_batch(self) -> int:
         sampler = getattr(self, "train_pixel_sampler", None)

@@ -70,7 +70,7 @@ def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, flo
     from torchmetrics.functional import structural_similarity_index_measure as ssim
 
     from frugalnerf_ns.lpips_offline import OfflineLPIPS
-    from frugalnerf_ns.model import masked_image_metrics
+    from frugalnerf_ns.metrics import masked_image_metrics
 
     patch_torchmetrics_lpips()
     def at_step(config):

@@ -22,18 +22,18 @@ def manager(procedural_scene):
 def test_training_rays_come_in_k_by_k_patches(manager):
     bundle, batch = manager.next_train(0)
     k = 3
-    num_train = batch["num_train_rays"]
+    num_train = batch.num_train
     assert num_train == (100 // 9) * 9 == manager.get_train_rays_per_batch()
-    assert batch["patch_size"] == k
-    patches = batch["indices"].reshape(-1, k * k, 3)
+    assert batch.patch_size == k
+    patches = batch.indices.reshape(-1, k * k, 3)
     for patch in patches:
         view, top, left = patch[0].tolist()
         rows, cols = torch.meshgrid(torch.arange(k) + top, torch.arange(k) + left, indexing="ij")
         assert (patch[:, 0] == view).all()
         assert patch[:, 1].tolist() == rows.flatten().tolist()
         assert patch[:, 2].tolist() == cols.flatten().tolist()
-    idx = batch["indices"]
-    assert torch.equal(batch["image"], manager.train_images[idx[:, 0], idx[:, 1], idx[:, 2]])
+    idx = batch.indices
+    assert torch.equal(batch.image, manager.train_images[idx[:, 0], idx[:, 1], idx[:, 2]])
     # Each training ray is the one nerfstudio generates for its pixel.
     cameras = manager.train_dataset.cameras
     for ray in (0, 7, num_train - 1):
@@ -45,8 +45,8 @@ def test_training_rays_come_in_k_by_k_patches(manager):
 
 def test_novel_rays_follow_the_training_rays_and_come_from_the_spiral(manager):
     bundle, batch = manager.next_train(1)
-    num_train = batch["num_train_rays"]
-    novel = batch["novel_indices"]
+    num_train = batch.num_train
+    novel = batch.novel_indices
     assert novel.shape == (40, 3) and bundle.origins.shape[0] == num_train + 40
     # 2x2 patches: consecutive groups of four share a pose and cover a 2x2 block.
     groups = novel.reshape(-1, 4, 3)
@@ -59,7 +59,7 @@ def test_novel_rays_follow_the_training_rays_and_come_from_the_spiral(manager):
     assert torch.allclose(bundle.origins[num_train:], centers, atol=1e-5)
     train_centers = manager.train_dataset.cameras.camera_to_worlds[:, :3, 3]
     expected = torch.cdist(centers, train_centers).argmin(dim=-1)
-    assert torch.equal(batch["nearest_view"][num_train:], expected)
+    assert torch.equal(batch.nearest_view[num_train:], expected)
 
 
 def test_training_views_warp_into_their_nearest_other_view(manager):
@@ -68,12 +68,14 @@ def test_training_views_warp_into_their_nearest_other_view(manager):
     distance = torch.cdist(centers, centers) + torch.diag(torch.full((len(centers),), float("inf")))
     expected = distance.argmin(dim=-1)
     assert torch.equal(manager.train_nearest_view, expected)
-    view = batch["indices"][:, 0]
-    assert torch.equal(batch["nearest_view"][: batch["num_train_rays"]], expected[view])
-    assert (batch["nearest_view"][: batch["num_train_rays"]] != view).all()
+    view = batch.indices[:, 0]
+    assert torch.equal(batch.nearest_view[batch.train], expected[view])
+    assert (batch.nearest_view[batch.train] != view).all()
+    # The views warps compare with are held once by the datamanager (the pipeline hands them to the model).
     num_views = len(centers)
-    assert batch["warp_images"].shape == (num_views, *manager.train_images.shape[1:3], 3)
-    assert batch["warp_camera_to_worlds"].shape == (num_views, 3, 4) and batch["warp_intrinsics"].shape == (num_views, 4)
+    assert manager.warp_images.shape == (num_views, *manager.train_images.shape[1:3], 3)
+    assert manager.warp_camera_to_worlds.shape == (num_views, 3, 4) and manager.warp_intrinsics.shape == (num_views, 4)
+    assert not any(isinstance(v, torch.Tensor) and v.shape[0] == num_views and v.ndim == 4 for v in vars(batch).values())
 
 
 def test_batches_are_deterministic_under_the_seed(procedural_scene):
@@ -81,14 +83,14 @@ def test_batches_are_deterministic_under_the_seed(procedural_scene):
     other = manager_for(procedural_scene, seed=1)
     for step in range(3):
         a, b, c = first.next_train(step)[1], second.next_train(step)[1], other.next_train(step)[1]
-        assert torch.equal(a["indices"], b["indices"]) and torch.equal(a["novel_indices"], b["novel_indices"])
-    assert not torch.equal(a["indices"], c["indices"])
+        assert torch.equal(a.indices, b.indices) and torch.equal(a.novel_indices, b.novel_indices)
+    assert not torch.equal(a.indices, c.indices)
 
 
 def test_novel_views_can_be_turned_off(procedural_scene):
     manager = manager_for(procedural_scene, novel_views=False)
     bundle, batch = manager.next_train(0)
-    assert "novel_indices" not in batch and bundle.origins.shape[0] == batch["num_train_rays"]
+    assert batch.novel_indices is None and batch.num_novel == 0 and bundle.origins.shape[0] == batch.num_train
 
 
 @pytest.fixture
@@ -103,8 +105,8 @@ def test_sparse_rays_follow_the_novel_rays_and_pass_through_their_points(procedu
     sparse = manager.sparse
     assert sparse is not None and sparse.num_points >= 1
     bundle, batch = manager.next_train(0)
-    num_train, num_novel = batch["num_train_rays"], batch["num_novel_rays"]
-    depth = batch["sparse_depth"]
+    num_train, num_novel = batch.num_train, batch.num_novel
+    depth = batch.sparse_depth
     assert num_novel == 40 and depth.shape == (min(3, len(sparse.view)),)
     start = num_train + num_novel
     assert bundle.origins.shape[0] == start + depth.shape[0]
@@ -132,7 +134,7 @@ def test_too_few_sparse_points_train_without_sparse_depth_and_say_so(procedural_
     out = capsys.readouterr().out
     assert manager.sparse is None and "without the sparse depth loss" in out
     _, batch = manager.next_train(0)
-    assert "sparse_depth" not in batch
+    assert batch.sparse_depth is None and batch.sparse.start == batch.sparse.stop  # no sparse-depth rays
 
 
 def test_one_rgba_image_among_rgb_images(procedural_scene, tmp_path):
@@ -157,7 +159,7 @@ def test_one_rgba_image_among_rgb_images(procedural_scene, tmp_path):
     # Warps compare colours composited on white.
     assert torch.allclose(manager.warp_images[0, :10, :10], torch.ones(10, 10, 3))
     bundle, batch = manager.next_train(0)
-    assert batch["image"].shape[-1] == 4
+    assert batch.image.shape[-1] == 4
     # The eval batch collates every test image (one RGBA, one RGB) without a stacking error.
     _, eval_batch = manager.next_eval(0)
-    assert eval_batch["image"].shape[-1] == 4
+    assert eval_batch.image.shape[-1] == 4

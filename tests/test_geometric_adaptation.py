@@ -38,6 +38,7 @@ def model_and_batch(procedural_scene, tmp_path_factory):
     )
     torch.manual_seed(0)
     model = config.setup(scene_box=manager.train_dataset.scene_box, num_train_data=len(manager.train_dataset), metadata={})
+    model.set_reference_views(manager.warp_images, manager.warp_camera_to_worlds, manager.warp_intrinsics)
     model.train()
     bundle, batch = manager.next_train(0)
     return model, bundle, batch
@@ -55,7 +56,7 @@ def test_losses_include_geometric_adaptation_and_smoothness_with_gradients(model
     fractions = [float(metrics[f"geo_scale{s}_fraction"]) for s in range(3)] + [float(metrics["geo_left_out_fraction"])]
     assert sum(fractions) == pytest.approx(1.0)
     # Only the training rays enter the colour loss: the batch's image has exactly that many rows.
-    assert batch["image"].shape[0] == batch["num_train_rays"] < outputs["rgb"].shape[0]
+    assert batch.image.shape[0] == batch.num_train < outputs["rgb"].shape[0]
     model.zero_grad()
     loss_dict["geo_loss"].backward()
     grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
@@ -68,9 +69,9 @@ def test_sparse_depth_loss_reads_the_trailing_rays_at_every_scale(model_and_batc
     model, bundle, batch = model_and_batch
     outputs = model(bundle)
     loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
-    n = batch["sparse_depth"].shape[0]
-    assert n > 0 and outputs["rgb"].shape[0] == batch["num_train_rays"] + batch["num_novel_rays"] + n
-    expected = sum(inverse_depth_loss(outputs[k][-n:, 0], batch["sparse_depth"]) for k in ("depth", "depth_scale1", "depth_scale2"))
+    n = batch.sparse_depth.shape[0]
+    assert n > 0 and outputs["rgb"].shape[0] == batch.num_train + batch.num_novel + n
+    expected = sum(inverse_depth_loss(outputs[k][-n:, 0], batch.sparse_depth) for k in ("depth", "depth_scale1", "depth_scale2"))
     assert float(loss_dict["sparse_depth"]) == pytest.approx(model.config.sparse_depth_weight * float(expected), rel=1e-5)
     model.zero_grad()
     loss_dict["sparse_depth"].backward()

@@ -8,6 +8,8 @@ import torch
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
 
+from frugalnerf_ns import objective
+from frugalnerf_ns.batch import EvalBatch, TrainBatch
 from frugalnerf_ns.model import FrugalNeRFModelConfig, scale_suffix
 
 
@@ -29,6 +31,29 @@ def tiny_model(metadata=None, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), **over
     box = SceneBox(aabb=torch.tensor(aabb))
     torch.manual_seed(0)
     return config.setup(scene_box=box, num_train_data=3, metadata=metadata or {})
+
+
+def train_batch(image):
+    """Training rays without warp context (no nearest view): the colour and regulariser terms."""
+    n = image.shape[0]
+    return TrainBatch(image=image, indices=torch.zeros(n, 3, dtype=torch.long), patch_size=1, nearest_view=torch.full((n,), -1))
+
+
+def eval_batch(image):
+    return EvalBatch(image=image, indices=torch.zeros(image.shape[0], 3, dtype=torch.long))
+
+
+def regularizers(model, outputs):
+    """The grid and per-sample regularisers of a training render, at the model's current schedule factor."""
+    decay = model.loss_schedule_factor
+    return {
+        **objective.grid_regularizers(model.config, model.field, decay),
+        **objective.sample_regularizers(model.config, model.field, outputs["step"], decay, model.occlusion_active),
+    }
+
+
+def scale_weights(model):
+    return objective.scale_color_weights(model.config, model.field.num_scales, model.loss_schedule_factor)
 
 
 def ray_bundle(n=64):
@@ -61,7 +86,7 @@ def test_lower_scales_take_fewer_samples():
     model = tiny_model()
     model.train()
     outputs = model.get_outputs(ray_bundle(8))
-    samples = [outputs[f"t{scale_suffix(s)}"].shape[1] for s in range(3)]
+    samples = [render.t.shape[1] for render in outputs["step"].scales]
     assert samples[0] > samples[1] > samples[2]
     assert samples[0] >= 3 * samples[1]
 
@@ -70,7 +95,7 @@ def test_losses_are_finite_and_send_gradients_to_grids_and_mlp():
     model = tiny_model()
     model.train()
     bundle = ray_bundle(64)
-    batch = {"image": torch.rand(64, 3)}
+    batch = train_batch(torch.rand(64, 3))
     outputs = model.get_outputs(bundle)
     loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
     assert {"rgb_loss", "tv_appearance", "tv_density", "l1_density", "distortion"} <= set(loss_dict)
@@ -84,21 +109,20 @@ def test_losses_are_finite_and_send_gradients_to_grids_and_mlp():
 
 def test_rgb_loss_uses_the_scale_weights():
     model = tiny_model(lower_scale_color_weight=10.0, full_scale_color_weight=1.0)
+    model.eval()  # an eval batch: the scales' colours as rendered, on the fixed background
     outputs = {f"rgb{scale_suffix(s)}": torch.full((4, 3), 0.1 * (s + 1)) for s in range(3)}
-    outputs["background"] = torch.ones(3)
     weightless = dict(appearance_tv_weight=0.0, density_tv_weight=0.0, distortion_weight=0.0, density_l1_weight=0.0)
     for k, v in weightless.items():
         setattr(model.config, k, v)
-    loss = model.get_loss_dict(outputs, {"image": torch.zeros(4, 3)})
+    loss = model.get_loss_dict(outputs, eval_batch(torch.zeros(4, 3)))
     assert set(loss) == {"rgb_loss"}
     assert math.isclose(float(loss["rgb_loss"]), 0.01 + 10 * 0.04 + 10 * 0.09, rel_tol=1e-5)
 
 
 def test_rgba_targets_are_composited_on_the_render_background():
-    model = tiny_model()
     image = torch.tensor([[1.0, 0.0, 0.0, 0.5]])
-    assert torch.allclose(model._target_rgb(image, torch.zeros(3)), torch.tensor([[0.5, 0.0, 0.0]]))
-    assert torch.allclose(model._target_rgb(image, torch.ones(3)), torch.tensor([[1.0, 0.5, 0.5]]))
+    assert torch.allclose(objective.target_rgb(image, torch.zeros(3)), torch.tensor([[0.5, 0.0, 0.0]]))
+    assert torch.allclose(objective.target_rgb(image, torch.ones(3)), torch.tensor([[1.0, 0.5, 0.5]]))
 
 
 def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser():
@@ -121,7 +145,7 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser():
     for step in range(1, 6):
         model.train()
         outputs = model.get_outputs(ray_bundle(32))
-        loss = sum(model.get_loss_dict(outputs, {"image": torch.rand(32, 3)}).values())
+        loss = sum(model.get_loss_dict(outputs, train_batch(torch.rand(32, 3))).values())
         optimizers.zero_grad_all()
         loss.backward()
         optimizers.optimizer_step_all()
@@ -190,7 +214,7 @@ def test_ndc_scenes_render_in_ndc_and_report_metric_depth():
 
 
 def test_masked_metrics_ignore_the_background():
-    from frugalnerf_ns.model import masked_psnr
+    from frugalnerf_ns.metrics import masked_psnr
 
     model = tiny_model()
     image = torch.rand(64, 64, 3)
@@ -223,13 +247,13 @@ def test_loss_weight_schedule_decays_colour_tv_smoothness_and_grows_distortion()
     torch.manual_seed(0)
     model.train()
     outputs = model.get_outputs(ray_bundle(32))
-    start = {k: float(v) for k, v in model._regularizers(outputs).items()}
-    assert model._scale_weights() == [1.0, 10.0, 10.0]
+    start = {k: float(v) for k, v in regularizers(model, outputs).items()}
+    assert scale_weights(model) == [1.0, 10.0, 10.0]
     for callback in before:
         callback.run_callback_at_location(10, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
     assert model.loss_schedule_factor == pytest.approx(0.01)
-    end = {k: float(v) for k, v in model._regularizers(outputs).items()}
-    assert model._scale_weights() == pytest.approx([1.0, 0.1, 0.1])
+    end = {k: float(v) for k, v in regularizers(model, outputs).items()}
+    assert scale_weights(model) == pytest.approx([1.0, 0.1, 0.1])
     assert end["tv_appearance"] == pytest.approx(0.01 * start["tv_appearance"], rel=1e-5)
     assert end["tv_density"] == pytest.approx(0.01 * start["tv_density"], rel=1e-5)
     assert end["distortion"] == pytest.approx(100 * start["distortion"], rel=1e-5)
@@ -239,11 +263,11 @@ def test_occlusion_term_only_with_a_weight():
     model = tiny_model(occlusion_weight=0.1)
     model.train()
     outputs = model.get_outputs(ray_bundle(32))
-    terms = model._regularizers(outputs)
+    terms = regularizers(model, outputs)
     assert float(terms["occlusion"]) > 0 and torch.isfinite(terms["occlusion"])
     off = tiny_model()
     off.train()
-    assert "occlusion" not in off._regularizers(off.get_outputs(ray_bundle(32)))
+    assert "occlusion" not in regularizers(off, off.get_outputs(ray_bundle(32)))
 
 
 def test_regularisers_vanish_when_their_weights_are_zero():
@@ -251,7 +275,7 @@ def test_regularisers_vanish_when_their_weights_are_zero():
         appearance_tv_weight=0.0, density_tv_weight=0.0, density_l1_weight=0.0, distortion_weight=0.0, occlusion_weight=0.0
     )
     model.train()
-    assert model._regularizers(model.get_outputs(ray_bundle(16))) == {}
+    assert regularizers(model, model.get_outputs(ray_bundle(16))) == {}
 
 
 def test_checkpoints_hold_the_scene_not_the_metric_network():
@@ -288,7 +312,7 @@ def test_model_builds_and_scores_without_the_lpips_weights(monkeypatch, capsys):
 
 
 def test_a_perfect_fit_logs_a_capped_psnr():
-    from frugalnerf_ns.model import PSNR_CAP_DB
+    from frugalnerf_ns.metrics import PSNR_CAP_DB
 
     model = tiny_model()
     model.eval()
@@ -298,7 +322,7 @@ def test_a_perfect_fit_logs_a_capped_psnr():
     assert metrics["psnr"] == pytest.approx(PSNR_CAP_DB) and math.isfinite(metrics["psnr_scale1"])
     model.train()
     train_outputs = model.get_outputs(ray_bundle(32))
-    batch = {"image": train_outputs["rgb"].detach().clone()}
+    batch = train_batch(train_outputs["rgb"].detach().clone())
     train_metrics = model.get_metrics_dict(train_outputs, batch)
     assert float(train_metrics["psnr"]) == pytest.approx(PSNR_CAP_DB)
 
@@ -309,10 +333,10 @@ def test_eval_batches_score_on_the_fixed_background_with_the_rendered_scales():
     model.eval()
     outputs = model.get_outputs(ray_bundle(40))
     rgba = torch.cat([torch.rand(40, 3), torch.zeros(40, 1)], dim=-1)  # fully transparent: target = background
-    batch = {"image": rgba}
+    batch = eval_batch(rgba)
     metrics = model.get_metrics_dict(outputs, batch)
     losses_ = model.get_loss_dict(outputs, batch, metrics)
     white = torch.ones(40, 3)
-    expected = sum(w * torch.mean((outputs[f"rgb{scale_suffix(s)}"] - white) ** 2) for s, w in enumerate(model._scale_weights()))
+    expected = sum(w * torch.mean((outputs[f"rgb{scale_suffix(s)}"] - white) ** 2) for s, w in enumerate(scale_weights(model)))
     assert float(losses_["rgb_loss"]) == pytest.approx(float(expected), rel=1e-5)
     assert "distortion" not in losses_ and all(torch.isfinite(v) for v in losses_.values())

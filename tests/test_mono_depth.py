@@ -85,8 +85,8 @@ def test_datamanager_and_model_add_the_mono_depth_term(procedural_scene, tiny_de
         procedural_scene, mono_depth_model=tiny_depth_model, mono_depth_input_size=64, sparse_cache_dir=tmp_path
     )
     bundle, batch = manager.next_train(0)
-    idx = batch["indices"]
-    assert torch.equal(batch["mono_depth"], manager.mono_depth[idx[:, 0], idx[:, 1], idx[:, 2]])
+    idx = batch.indices
+    assert torch.equal(batch.mono_depth, manager.mono_depth[idx[:, 0], idx[:, 1], idx[:, 2]])
     config = FrugalNeRFModelConfig(
         initial_voxels=16**3, final_voxels=16**3, upsample_iters=(), alpha_mask_iters=(), density_components=(4, 2, 2),
         appearance_components=(8, 2, 2), mlp_hidden_dim=16, background="white", density_activation="softplus",

@@ -244,7 +244,9 @@ def tiny_model(manager, **overrides):
     fields.update(overrides)
     dataset = manager.train_dataset
     torch.manual_seed(0)
-    return FrugalNeRFModelConfig(**fields).setup(scene_box=dataset.scene_box, num_train_data=len(dataset), metadata=dataset.metadata)
+    model = FrugalNeRFModelConfig(**fields).setup(scene_box=dataset.scene_box, num_train_data=len(dataset), metadata=dataset.metadata)
+    model.set_reference_views(manager.warp_images, manager.warp_camera_to_worlds, manager.warp_intrinsics)  # as the pipeline does
+    return model
 
 
 def total_loss(model, bundle, batch):
@@ -294,9 +296,9 @@ def test_one_training_view_trains_without_geometric_adaptation_and_says_why(proc
     loss = sum(loss_dict.values())
     assert all(bool(torch.isfinite(v)) for v in loss_dict.values())
     # Training rays are all left out of L_geo; novel rays still warp into the one view.
-    chosen = outputs["geo_adaptation"].chosen_scale
-    assert (chosen[: batch["num_train_rays"]] == -1).all()
-    assert float(metrics["geo_left_out_fraction"]) >= batch["num_train_rays"] / len(chosen)
+    chosen = outputs["step"].adaptation.chosen_scale
+    assert (chosen[batch.train] == -1).all()
+    assert float(metrics["geo_left_out_fraction"]) >= batch.num_train / len(chosen)
     loss.backward()
     assert all(finite(p.grad) for p in model.parameters() if p.grad is not None)
 

@@ -3,7 +3,7 @@ same step (loss weights, learning rates, grid upsampling, alpha-mask box)."""
 
 import pytest
 
-from frugalnerf_ns import losses
+from frugalnerf_ns import losses, objective
 from tests.training_helpers import preset_config, train
 
 SCHEDULE = dict(
@@ -25,7 +25,7 @@ def snapshot(trainer):
         "lr": {name: opt.param_groups[0]["lr"] for name, opt in trainer.optimizers.optimizers.items()},
         "resolution": model.field.density_grid.resolution.tolist(),
         "box": model.field.aabb.flatten().tolist(),
-        "lower_scale_weight": model._scale_weights()[1],
+        "lower_scale_weight": objective.scale_color_weights(model.config, model.field.num_scales, model.loss_schedule_factor)[1],
     }
 
 

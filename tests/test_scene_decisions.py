@@ -36,7 +36,7 @@ def test_scene_type_override_wins_and_drives_novel_rays_and_occlusion(procedural
     manager = manager_for(procedural_scene, scene_type="360", sparse_cache_dir=tmp_path)
     assert manager.scene_type == "360" and manager.novel_cameras is None
     _, batch = manager.next_train(0)
-    assert batch["num_novel_rays"] == 0
+    assert batch.num_novel == 0
     model = model_for(manager, occlusion_weight=0.1)
     assert not model.occlusion_active  # occlusion is for object scenes only
     forward = manager_for(procedural_scene, scene_type="forward-facing", sparse_cache_dir=tmp_path)
