@@ -361,7 +361,11 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         )
 
     def _sample_patches(self, num_patches: int, num_views: int, height: int, width: int, k: int) -> Int[Tensor, "rays 3"]:
-        """(view, row, col) of ``num_patches`` random k x k patches, patch-major, row-major inside a patch."""
+        """(view, row, col) of ``num_patches`` random k x k patches, patch-major, row-major inside a patch.
+
+        Not nerfstudio's PatchPixelSampler: that one samples from an image batch its dataloader collated and
+        draws from the global RNG; training here samples every view every step from images held on the
+        device, with this datamanager's seeded generator, for the novel poses too (which have no images)."""
         gen = self.generator
         view = torch.randint(num_views, (num_patches,), generator=gen)
         top = torch.randint(height - k + 1, (num_patches,), generator=gen)

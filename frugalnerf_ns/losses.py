@@ -87,6 +87,8 @@ def distortion_loss(
     """L_dist of Mip-NeRF 360 for samples of equal length ``step`` centred at ``t``.
 
     sum_ij w_i w_j |t_i - t_j| + 1/3 sum_i w_i^2 step, computed in O(N) with prefix sums (t sorted per ray).
+    nerfstudio's ``distortion_loss`` takes a RaySamples with per-sample bins and forms the N x N pairwise
+    matrix; our samples are equal steps (TensoRF marching), so the prefix-sum form needs only (t, step).
     """
     w_t = weights * t
     prefix_w = torch.cumsum(weights, dim=-1) - weights

@@ -92,7 +92,8 @@ class FrugalNeRFModel(Model):
         self.scale_history = ScaleFractionHistory()
         # Factor of the decaying loss weights (losses.loss_weight_schedule), set before every training step.
         self.loss_schedule_factor = 1.0
-        # Training images and cameras for the pseudo-GT scale map outside training (set_reference_views).
+        # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
+        # scale map outside it (set_reference_views).
         self.reference_views: Optional[ReferenceViews] = None
         # Viewer panel ("Custom Elements"): the lower scales cost most of a frame's render time on a CPU.
         self.viewer_lower_scales = ViewerCheckbox(
@@ -113,8 +114,9 @@ class FrugalNeRFModel(Model):
         camera_to_worlds: Float[Tensor, "views 3 4"],
         intrinsics: Float[Tensor, "views 4"],
     ) -> None:
-        """Training views the pseudo-GT scale map warps into (FrugalPipeline calls this at set-up). Kept out
-        of the state dict: they come from the data, not from training."""
+        """Training views that geometric adaptation and the pseudo-GT scale map warp into (FrugalPipeline
+        calls this at set-up; without them L_geo is off). Kept out of the state dict: they come from the data,
+        not from training."""
         self.reference_views = ReferenceViews(images, camera_to_worlds, intrinsics)
 
     @property

@@ -3,7 +3,10 @@
 FrugalNeRF inherits TensoRF's renderer: samples at a fixed step along each ray inside the scene box, a
 density activation, distances scaled by a constant before compositing, and colour evaluated only where
 the compositing weight matters. Keeping these as plain functions lets the tests drive them at extremes
-without building a model.
+without building a model. nerfstudio's samplers and renderers are not used: its UniformSampler bins each
+ray between its own near and far (not a fixed world step shared by the voxel grid and the alpha mask), and
+the compositing here carries the stability fixes the numerical-stability suite needs (exclusive cumsum
+without cancellation, an optical-depth cap, float32 compositing of half inputs).
 """
 
 from __future__ import annotations

@@ -340,3 +340,13 @@ def test_eval_batches_score_on_the_fixed_background_with_the_rendered_scales():
     expected = sum(w * torch.mean((outputs[f"rgb{scale_suffix(s)}"] - white) ** 2) for s, w in enumerate(scale_weights(model)))
     assert float(losses_["rgb_loss"]) == pytest.approx(float(expected), rel=1e-5)
     assert "distortion" not in losses_ and all(torch.isfinite(v) for v in losses_.values())
+
+
+def test_the_model_reads_only_typed_batches():
+    """The mode comes from the batch's type, never from which keys a dict happens to hold."""
+    model = tiny_model()
+    model.train()
+    outputs = model.get_outputs(ray_bundle(16))
+    assert set(k for k in outputs if not k.startswith(("rgb", "depth", "accumulation"))) == {"step"}
+    with pytest.raises(TypeError, match="needs a TrainBatch or EvalBatch from FrugalDataManager, got dict"):
+        model.get_loss_dict(outputs, {"image": torch.rand(16, 3)})
