@@ -76,7 +76,7 @@ class FrugalNeRFModel(Model):
         if self.config.auto_grid and "num_train_pixels" in scene:
             self.final_voxels = max(self.config.initial_voxels, grid_side_for_pixels(scene["num_train_pixels"]) ** 3)
         self.upsample_voxels = log_linear_voxel_counts(
-            self.config.initial_voxels, self.final_voxels, len(self.config.upsample_iters)
+            self.config.initial_voxels, self.final_voxels, len(self.config.upsample_at)
         )
         # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
         self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
@@ -145,8 +145,13 @@ class FrugalNeRFModel(Model):
         return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        length = schedule_length(training_callback_attributes)
+        upsample_steps = steps_at(self.config.upsample_at, length)
+        alpha_mask_steps = steps_at(self.config.alpha_mask_at, length)
+
         def upsample(step: int) -> None:
-            voxels = self.upsample_voxels[self.config.upsample_iters.index(step)]
+            # Fractions that round to the same step (a very short run) upsample once, to the later size.
+            voxels = self.upsample_voxels[max(i for i, s in enumerate(upsample_steps) if s == step)]
             box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
             self.field.upsample(resolution_for_voxels(voxels, box))
             _restart_grid_optimizer(training_callback_attributes)
@@ -155,7 +160,7 @@ class FrugalNeRFModel(Model):
             occupied_box = self.field.update_alpha_mask(
                 self.config.step_ratio, self.config.distance_scale, self.config.alpha_mask_threshold
             )
-            if step == self.config.alpha_mask_iters[0]:
+            if step == alpha_mask_steps[0]:
                 # Keep the voxel count while the box shrinks: the freed voxels refine the occupied region.
                 voxels = int(self.field.density_grid.resolution.prod())
                 self.field.shrink(occupied_box)
@@ -179,18 +184,16 @@ class FrugalNeRFModel(Model):
                 path = self.scale_history.write(Path(trainer.base_dir))
                 CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
 
-        horizon = loss_schedule_horizon(training_callback_attributes)
-
         def schedule_loss_weights(step: int) -> None:
             # From the absolute step (not accumulated), so a resumed run continues the same curve.
-            if horizon is not None:
-                self.loss_schedule_factor = losses.loss_weight_schedule(step, horizon, self.config.loss_weight_decay)
+            if length is not None:
+                self.loss_schedule_factor = losses.loss_weight_schedule(step, length, self.config.loss_weight_decay)
 
         return [
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], schedule_loss_weights),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=self.config.upsample_iters),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=tuple(sorted(set(upsample_steps)))),
             TrainingCallback(
-                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=self.config.alpha_mask_iters
+                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=tuple(sorted(set(alpha_mask_steps)))
             ),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record_scale_fractions),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], plot_scale_fractions),
@@ -363,19 +366,22 @@ def _check_batch(batch) -> EvalBatch:
     return batch
 
 
-def loss_schedule_horizon(attributes: TrainingCallbackAttributes) -> Optional[int]:
-    """Steps over which the decaying loss weights fall by ``loss_weight_decay``: those of the grid learning
-    rate's decay (the reference decays them together), else the run's length; None without a trainer.
-
-    Not ``max_num_iterations`` first: nerfstudio counts it from the loaded step when a run resumes, so a
-    resumed run would follow another curve."""
-    optimizers = attributes.optimizers
-    if optimizers is not None:
-        scheduler = optimizers.config.get("encodings", {}).get("scheduler")
-        if scheduler is not None and getattr(scheduler, "max_steps", None):
-            return int(scheduler.max_steps)
+def schedule_length(attributes: TrainingCallbackAttributes) -> Optional[int]:
+    """Steps every schedule spans (upsampling, alpha mask, the decaying loss weights, the learning rates):
+    FrugalTrainer resolves it once per run (``trainer.schedule_steps``: the run's iterations, or the
+    checkpoint's when resuming); another trainer's run length; None without a trainer (no schedules)."""
     trainer = attributes.trainer
-    return None if trainer is None else int(trainer.config.max_num_iterations)
+    if trainer is None:
+        return None
+    resolved = getattr(trainer, "schedule_steps", None)
+    return int(resolved) if resolved else int(trainer.config.max_num_iterations)
+
+
+def steps_at(fractions: Tuple[float, ...], length: Optional[int]) -> List[int]:
+    """The steps at ``fractions`` of a schedule of ``length`` steps (one per fraction, inside the run)."""
+    if not length:
+        return []
+    return [min(length - 1, max(1, round(f * length))) for f in fractions]
 
 
 def _restart_grid_optimizer(attributes: TrainingCallbackAttributes) -> None:

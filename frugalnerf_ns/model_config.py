@@ -38,10 +38,13 @@ class FrugalNeRFModelConfig(ModelConfig):
     auto_grid: bool = False
     """Size the final grid from the training pixels instead of final-voxels: side = 0.52 sqrt(pixels), the
     paper's ratio (640^3 for two 1008x756 views; ~320^3 for two 504x378 views), clamped to 32..640."""
-    upsample_iters: Tuple[int, ...] = (500, 1000, 1500, 2000, 2500, 3000)
-    """Steps at which the grid is upsampled (log-linear in voxel count); the grid optimiser restarts."""
-    alpha_mask_iters: Tuple[int, ...] = (1000, 2000)
-    """Steps at which the occupancy (alpha) mask is recomputed; the box shrinks to it the first time."""
+    upsample_at: Tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+    """When the grid is upsampled (log-linear in voxel count), as fractions of the schedule (--schedule-steps,
+    by default the run's iterations: the paper's steps 500, 1000, ..., 3000 of 5000); the grid optimiser
+    restarts."""
+    alpha_mask_at: Tuple[float, ...] = (0.2, 0.4)
+    """When the occupancy (alpha) mask is recomputed, as fractions of the schedule (paper: steps 1000 and 2000
+    of 5000); the box shrinks to it the first time."""
     alpha_mask_threshold: float = 1e-4
     """Alpha below which a (dilated) voxel counts as empty."""
     density_components: Tuple[int, int, int] = (16, 4, 4)

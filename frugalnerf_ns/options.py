@@ -45,13 +45,15 @@ def option_problems(config: Any) -> List[str]:
             f">= {flag(m + '.initial_voxels')} ({model.initial_voxels})",
             model.final_voxels,
         )
-    for name in ("upsample_iters", "alpha_mask_iters"):
-        iters = tuple(getattr(model, name))
+    schedule_steps = getattr(config, "schedule_steps", None)
+    need(schedule_steps is None or schedule_steps >= 1, "schedule_steps", ">= 1 (or unset: the run's iterations)", schedule_steps)
+    for name in ("upsample_at", "alpha_mask_at"):
+        fractions = tuple(getattr(model, name))
         need(
-            all(i >= 0 for i in iters) and list(iters) == sorted(set(iters)),
+            all(0 < f < 1 for f in fractions) and list(fractions) == sorted(set(fractions)),
             f"{m}.{name}",
-            "increasing steps >= 0",
-            " ".join(map(str, iters)) or "(none)",
+            "increasing fractions of the schedule, each in (0, 1)",
+            " ".join(map(str, fractions)) or "(none)",
         )
     need(model.num_lower_scales >= 0, f"{m}.num_lower_scales", ">= 0", model.num_lower_scales)
     need(model.downsample_ratio >= 1, f"{m}.downsample_ratio", ">= 1", model.downsample_ratio)

@@ -73,6 +73,7 @@ def base_trainer_config(method_name: str) -> FrugalTrainerConfig:
         optimizers={
             "encodings": {
                 "optimizer": AdamBetasOptimizerConfig(lr=0.08),
+                # max_steps: set by FrugalTrainer to the run's schedule length (--schedule-steps).
                 "scheduler": ExponentialDecaySchedulerConfig(lr_final=0.002, max_steps=5000),
             },
             "fields": {

@@ -18,7 +18,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Literal, Type
+from typing import Any, Dict, Literal, Optional, Tuple, Type
 
 import torch
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
@@ -40,6 +40,10 @@ class FrugalTrainerConfig(TrainerConfig):
     """nerfstudio's trainer settings; the trainer adds atomic checkpoints and checked options."""
 
     _target: Type = field(default_factory=lambda: FrugalTrainer)
+    schedule_steps: Optional[int] = None
+    """Steps every schedule spans: the learning rates' and loss weights' decay, grid upsampling and the alpha
+    mask (--pipeline.model.upsample-at / alpha-mask-at are fractions of it). None: --max-num-iterations of a run
+    started from scratch; a resumed run keeps the one stored in its checkpoint."""
 
 
 def is_out_of_memory(err: BaseException) -> bool:
@@ -48,6 +52,17 @@ def is_out_of_memory(err: BaseException) -> bool:
         return True
     text = str(err)
     return isinstance(err, RuntimeError) and ("can't allocate memory" in text or "out of memory" in text)
+
+
+def resolve_schedule_steps(config: FrugalTrainerConfig, resumed: Optional[Dict[str, Any]]) -> int:
+    """The run's schedule length: --schedule-steps when given; else a resumed checkpoint's (checkpoints
+    written before it was stored: where a run of --max-num-iterations from that step ends); else
+    --max-num-iterations of a fresh run."""
+    if config.schedule_steps:
+        return int(config.schedule_steps)
+    if resumed is not None:
+        return int(resumed.get("schedule_steps") or int(resumed["step"]) + 1 + config.max_num_iterations)
+    return int(config.max_num_iterations)
 
 
 def memory_shortfall(err: BaseException, device: str) -> str:
@@ -99,6 +114,13 @@ class FrugalTrainer(Trainer):
         try:
             with one_line_errors():
                 validate_options(self.config)
+                # The checkpoint is read before nerfstudio builds the optimisers: it holds the schedule length
+                # their learning-rate schedulers must be built with.
+                self._resume = self._read_checkpoint_to_resume()
+                self.schedule_steps = resolve_schedule_steps(self.config, None if self._resume is None else self._resume[1])
+                for group in self.config.optimizers.values():
+                    if group.get("scheduler") is not None and hasattr(group["scheduler"], "max_steps"):
+                        group["scheduler"].max_steps = self.schedule_steps
                 super().setup(test_mode)
         except BaseException:
             # nerfstudio wrote config.yml before calling us: a run that never started leaves no folder.
@@ -111,6 +133,7 @@ class FrugalTrainer(Trainer):
         pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
         return {
             "step": step,
+            "schedule_steps": self.schedule_steps,
             "pipeline": pipeline.state_dict(),
             "optimizers": {k: v.state_dict() for (k, v) in self.optimizers.optimizers.items()},
             "schedulers": {k: v.state_dict() for (k, v) in self.optimizers.schedulers.items()},
@@ -123,19 +146,25 @@ class FrugalTrainer(Trainer):
         write_checkpoint(self.checkpoint_state(step), path, keep_only_this=self.config.save_only_latest_checkpoint)
         self.last_saved_step = step
 
-    def _load_checkpoint(self) -> None:
+    def _read_checkpoint_to_resume(self) -> Optional[Tuple[Path, Dict[str, Any]]]:
         cfg = self.config
         if cfg.load_dir is not None and cfg.load_step is None:
-            path, state = newest_intact_checkpoint(Path(cfg.load_dir))
-        elif cfg.load_dir is not None:
+            return newest_intact_checkpoint(Path(cfg.load_dir))
+        if cfg.load_dir is not None:
             path = Path(cfg.load_dir) / checkpoint_file_name(cfg.load_step)
-            state = read_checkpoint_or_exit(path)
-        elif cfg.load_checkpoint is not None:
+            return path, read_checkpoint_or_exit(path)
+        if cfg.load_checkpoint is not None:
             path = Path(cfg.load_checkpoint)
-            state = read_checkpoint_or_exit(path)
-        else:
+            return path, read_checkpoint_or_exit(path)
+        return None
+
+    def _load_checkpoint(self) -> None:
+        cfg = self.config
+        if self._resume is None:
             CONSOLE.print("No Nerfstudio checkpoint to load, so training from scratch.")
             return
+        path, state = self._resume
+        self._resume = None  # loaded once; the state is not kept around
         self._start_step = state["step"] + 1
         self.pipeline.load_pipeline(state["pipeline"], state["step"])
         self.optimizers.load_optimizers(state["optimizers"])

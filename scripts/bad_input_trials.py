@@ -161,6 +161,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     out = root / "runs" / "paper-eval"
     trial("paper preset, --vis tensorboard, eval batch/image/all at step 20 (22 steps)",
           [BIN / "ns-train", "frugalnerf", "--data", fx["scene"], "--output-dir", out, *QUIET, "--max-num-iterations", "22",
+           "--schedule-steps", "5000",
            "--steps-per-eval-batch", "20", "--steps-per-eval-image", "20", "--steps-per-eval-all-images", "21",
            "frugal-auto", "--center-method", "focus"], out, needle="Training Finished")
     for damage in ("truncated", "empty"):

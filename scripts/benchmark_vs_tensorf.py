@@ -41,8 +41,8 @@ def _trainer_config(method: str, args: argparse.Namespace):
         config = build_trainer_config("frugalnerf-tiny")
         model = config.pipeline.model
         model.initial_voxels = model.final_voxels = args.resolution**3
-        model.upsample_iters = ()
-        model.alpha_mask_iters = ()
+        model.upsample_at = ()
+        model.alpha_mask_at = ()
         model.density_components = (16, 4, 4)
         model.appearance_components = (48, 12, 12)
         model.mlp_hidden_dim = 128

@@ -32,24 +32,10 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchmark_scenes import QUIET, ROOT, device_args  # noqa: E402  (a sibling script)
 
-STEP_FIELDS = ("pipeline.model.upsample_iters", "pipeline.model.alpha_mask_iters")
-
-
 def budget_args(preset: str, iterations: int) -> List[str]:
-    """ns-train options that run ``preset`` for ``iterations`` steps with its whole step schedule scaled."""
-    from frugalnerf_ns.presets import build_trainer_config
-
-    config = build_trainer_config(preset)
-    factor = iterations / config.max_num_iterations
-    args = ["--max-num-iterations", str(iterations)]
-    for dotted in STEP_FIELDS:
-        steps = getattr(config.pipeline.model, dotted.rsplit(".", 1)[1])
-        scaled = sorted({max(1, min(iterations - 1, round(s * factor))) for s in steps})
-        flag = "--" + dotted.replace("_", "-")
-        args += [flag, *map(str, scaled)] if scaled else [flag]
-    for group in config.optimizers:
-        args += [f"--optimizers.{group}.scheduler.max-steps", str(iterations)]
-    return args
+    """ns-train options that run ``preset`` for ``iterations`` steps. Its whole schedule (learning rates,
+    loss weights, upsampling, alpha mask) follows: every schedule is a fraction of the run (FrugalTrainer)."""
+    return ["--max-num-iterations", str(iterations)]
 
 
 def train(label: str, method: str, data: Path, parser_args: Sequence[str], extra: Sequence[str], every: int,

@@ -73,6 +73,7 @@ def test_paper_preset_trains_on_cpu(procedural_scene, tmp_path):
         [
             str(exe), "frugalnerf", "--data", str(procedural_scene), "--output-dir", str(tmp_path),
             "--vis", "tensorboard", "--max-num-iterations", "3", "--steps-per-save", "2",
+            "--schedule-steps", "5000",  # the first 3 steps of the paper's schedule (its grid stays 64^3)
             "frugal-auto", "--center-method", "focus",
         ],
         capture_output=True,

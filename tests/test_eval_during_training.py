@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from frugalnerf_ns.presets import load_preset_table
+from frugalnerf_ns.presets import build_trainer_config, load_preset_table
 from tests import layout_fixtures as fx
 from tests.training_helpers import preset_config, train
 
@@ -34,10 +34,14 @@ def test_preset_evaluates_during_training_and_saves(preset, procedural_scene, ma
     data = masked_scene if dtu else procedural_scene
     parser = {"pipeline__datamanager__dataparser__train_views": (0, 3), "pipeline__datamanager__dataparser__test_views": (1, 5)} if dtu \
         else {"pipeline__datamanager__dataparser__center_method": "focus"}
+    full_length = build_trainer_config(preset).max_num_iterations
     config = preset_config(
         preset, data, tmp_path,
         max_num_iterations=2, steps_per_eval_batch=1, steps_per_eval_image=1, steps_per_eval_all_images=1,
         steps_per_save=1000, **parser,
+        # Two steps of the preset's own schedule (not the whole schedule squeezed into two steps, which
+        # would upsample the paper presets to their 640^3 final grid at step 1).
+        schedule_steps=full_length,
     )
     rays = config.pipeline.datamanager.eval_num_rays_per_batch
     k = config.pipeline.datamanager.patch_size

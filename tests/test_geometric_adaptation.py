@@ -32,7 +32,7 @@ def model_and_batch(procedural_scene, tmp_path_factory):
             min_sparse_points=1, sparse_cache_dir=tmp_path_factory.mktemp("sparse"),
         )
     config = FrugalNeRFModelConfig(
-        initial_voxels=24**3, final_voxels=24**3, upsample_iters=(), alpha_mask_iters=(),
+        initial_voxels=24**3, final_voxels=24**3, upsample_at=(), alpha_mask_at=(),
         density_components=(4, 2, 2), appearance_components=(8, 2, 2), mlp_hidden_dim=16, background="white",
         density_activation="softplus", depth_smoothness_weight=1.0, reprojection_threshold=1.0,
     )

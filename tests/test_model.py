@@ -17,8 +17,8 @@ def tiny_model(metadata=None, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), **over
     fields = dict(
         initial_voxels=16**3,
         final_voxels=24**3,
-        upsample_iters=(2, 4),
-        alpha_mask_iters=(3,),
+        upsample_at=(0.2, 0.4),  # steps 2 and 4 of a 10-step schedule
+        alpha_mask_at=(0.3,),  # step 3
         density_components=(4, 2, 2),
         appearance_components=(8, 2, 2),
         mlp_hidden_dim=16,
@@ -139,7 +139,8 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser():
         for name in ("encodings", "fields")
     }
     optimizers = Optimizers(opt_config, model.get_param_groups())
-    attrs = TrainingCallbackAttributes(optimizers=optimizers, grad_scaler=None, pipeline=pipeline, trainer=None)
+    trainer = SimpleNamespace(schedule_steps=10, config=SimpleNamespace(max_num_iterations=10, steps_per_save=1000), base_dir=".")
+    attrs = TrainingCallbackAttributes(optimizers=optimizers, grad_scaler=None, pipeline=pipeline, trainer=trainer)
     callbacks = model.get_training_callbacks(attrs)
     start = model.field.density_grid.resolution_tuple
     for step in range(1, 6):

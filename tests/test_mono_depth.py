@@ -88,7 +88,7 @@ def test_datamanager_and_model_add_the_mono_depth_term(procedural_scene, tiny_de
     idx = batch.indices
     assert torch.equal(batch.mono_depth, manager.mono_depth[idx[:, 0], idx[:, 1], idx[:, 2]])
     config = FrugalNeRFModelConfig(
-        initial_voxels=16**3, final_voxels=16**3, upsample_iters=(), alpha_mask_iters=(), density_components=(4, 2, 2),
+        initial_voxels=16**3, final_voxels=16**3, upsample_at=(), alpha_mask_at=(), density_components=(4, 2, 2),
         appearance_components=(8, 2, 2), mlp_hidden_dim=16, background="white", density_activation="softplus",
     )
     model = config.setup(scene_box=manager.train_dataset.scene_box, num_train_data=len(manager.train_dataset), metadata={})

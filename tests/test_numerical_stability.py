@@ -238,7 +238,7 @@ def tiny_model(manager, **overrides):
     from frugalnerf_ns.model import FrugalNeRFModelConfig
 
     fields = dict(
-        initial_voxels=16**3, final_voxels=16**3, upsample_iters=(), alpha_mask_iters=(), density_components=(4, 2, 2),
+        initial_voxels=16**3, final_voxels=16**3, upsample_at=(), alpha_mask_at=(), density_components=(4, 2, 2),
         appearance_components=(8, 2, 2), mlp_hidden_dim=16, background="white", density_activation="softplus",
     )
     fields.update(overrides)

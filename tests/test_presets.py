@@ -81,20 +81,29 @@ def test_bad_presets_fail_clearly():
 
 
 def test_list_values_become_tuples():
-    table = {"x": {"description": "", "overrides": {"pipeline.model.upsample_iters": [1, 2]}}}
-    assert presets.build_trainer_config("x", table).pipeline.model.upsample_iters == (1, 2)
+    table = {"x": {"description": "", "overrides": {"pipeline.model.upsample_at": [0.1, 0.2]}}}
+    assert presets.build_trainer_config("x", table).pipeline.model.upsample_at == (0.1, 0.2)
 
 
 @pytest.mark.parametrize("name", sorted(presets.load_preset_table()))
 def test_every_preset_schedule_fits_its_iterations(name):
     config = presets.build_trainer_config(name)
+    from frugalnerf_ns.model import steps_at
+
     total = config.max_num_iterations
     model = config.pipeline.model
-    assert all(0 < step < total for step in model.upsample_iters + model.alpha_mask_iters), name
-    assert list(model.upsample_iters) == sorted(model.upsample_iters)
-    for group in config.optimizers.values():
-        assert group["scheduler"].max_steps == total, name  # the learning rate reaches lr_final at the end
+    for fractions in (model.upsample_at, model.alpha_mask_at):
+        steps = steps_at(fractions, total)
+        assert all(0 < step < total for step in steps) and steps == sorted(set(steps)), name
     assert model.initial_voxels <= model.final_voxels
+
+
+def test_paper_preset_schedule_is_the_papers_steps():
+    from frugalnerf_ns.model import steps_at
+
+    model = presets.build_trainer_config("frugalnerf").pipeline.model
+    assert steps_at(model.upsample_at, 5000) == [500, 1000, 1500, 2000, 2500, 3000]
+    assert steps_at(model.alpha_mask_at, 5000) == [1000, 2000]
 
 
 def test_speed_presets_trade_iterations_and_grid_against_the_paper_preset():

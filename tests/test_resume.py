@@ -7,10 +7,8 @@ from frugalnerf_ns import losses, objective
 from tests.training_helpers import preset_config, train
 
 SCHEDULE = dict(
-    pipeline__model__upsample_iters=(2, 8),
-    pipeline__model__alpha_mask_iters=(3,),
-    optimizers__encodings__scheduler__max_steps=12,
-    optimizers__fields__scheduler__max_steps=12,
+    pipeline__model__upsample_at=(2 / 12, 8 / 12),  # steps 2 and 8 of the 12-step run
+    pipeline__model__alpha_mask_at=(3 / 12,),
     pipeline__datamanager__dataparser__center_method="focus",
     steps_per_save=5,
     save_only_latest_checkpoint=False,
@@ -38,7 +36,10 @@ def test_resumed_run_follows_the_uninterrupted_schedules(procedural_scene, tmp_p
     ))
     a, b = snapshot(full), snapshot(resumed)
     assert a["step"] == b["step"] == 11
-    # The decaying weights follow the grid learning rate's horizon (12 steps), not the steps of this run.
+    # The resumed run (6 iterations) keeps the schedule length of the run it continues, from its checkpoint.
+    assert full.schedule_steps == resumed.schedule_steps == 12
+    assert resumed.optimizers.config["encodings"]["scheduler"].max_steps == 12
+    # The decaying weights follow the schedule length (12 steps), not the steps of this run.
     assert a["loss_weight_factor"] == pytest.approx(losses.loss_weight_schedule(11, 12, 0.025))
     assert b["loss_weight_factor"] == pytest.approx(a["loss_weight_factor"])
     assert b["lower_scale_weight"] == pytest.approx(a["lower_scale_weight"])

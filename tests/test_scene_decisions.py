@@ -11,7 +11,7 @@ from frugalnerf_ns.scene_analysis import grid_side_for_pixels
 from tests.test_datamanager import manager_for
 
 TINY_MODEL = dict(
-    initial_voxels=16**3, final_voxels=24**3, upsample_iters=(10,), alpha_mask_iters=(), density_components=(4, 2, 2),
+    initial_voxels=16**3, final_voxels=24**3, upsample_at=(0.5,), alpha_mask_at=(), density_components=(4, 2, 2),
     appearance_components=(8, 2, 2), mlp_hidden_dim=16,
 )
 
