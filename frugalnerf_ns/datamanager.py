@@ -11,9 +11,8 @@ Batches are deterministic under ``seed``. The test dataset adds the evaluation o
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
-from typing import Dict, Literal, Optional, Tuple, Type
+from typing import Literal, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -21,17 +20,16 @@ from jaxtyping import Float, Int
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManager, VanillaDataManagerConfig
-from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.pixel_samplers import PixelSampler, PixelSamplerConfig
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
-from PIL import Image
 from torch import Tensor
 
 from frugalnerf_ns.batch import EvalBatch, TrainBatch
 from frugalnerf_ns.cache import cache_file_name
 from frugalnerf_ns.data import DataError
+from frugalnerf_ns.dataset import FrugalDataset
 from frugalnerf_ns.mono_depth import load_or_predict
 from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
 from frugalnerf_ns.scene_analysis import (
@@ -52,54 +50,6 @@ from frugalnerf_ns.sparse_points import (
     save_sparse_depth,
     triangulate_training_views,
 )
-
-
-def image_mode(path) -> Tuple[str, bool]:
-    """PIL mode of an image file and whether it carries alpha (RGBA, LA, or a palette with transparency)."""
-    with Image.open(path) as img:
-        has_alpha = img.mode in ("RGBA", "LA", "PA", "La", "RGBa") or (img.mode == "P" and "transparency" in img.info)
-        return img.mode, has_alpha
-
-
-class FrugalDataset(InputDataset):
-    """InputDataset that also loads ``eval_mask`` (bool, H x W x 1) when the dataparser lists eval masks.
-
-    nerfstudio's own ``mask`` would also restrict which pixels are *trained*, and only reads 1-channel
-    files; DTU's masks are RGB and must only affect the metrics.
-    """
-
-    @cached_property
-    def any_image_has_alpha(self) -> bool:
-        """Whether an image of this dataset has an alpha channel (PIL reads only the file headers)."""
-        return any(image_mode(f)[1] for f in self._dataparser_outputs.image_filenames)
-
-    def get_numpy_image(self, image_idx: int) -> np.ndarray:
-        """uint8 RGB, or RGBA for every image when any image of the dataset has alpha (opaque alpha for the
-        others), so images stack and the model composites each on the same background. Palette, grey and
-        grey-alpha files are converted rather than read as raw channel values."""
-        filename = self._dataparser_outputs.image_filenames[image_idx]
-        with Image.open(filename) as pil_image:
-            image = pil_image.convert("RGBA" if image_mode(filename)[1] else "RGB")
-        if self.scale_factor != 1.0:
-            width, height = image.size
-            newsize = (int(width * self.scale_factor), int(height * self.scale_factor))
-            image = image.resize(newsize, resample=Image.Resampling.BILINEAR)
-        array = np.array(image, dtype=np.uint8)
-        if self.any_image_has_alpha and array.shape[-1] == 3:
-            array = np.concatenate([array, np.full_like(array[..., :1], 255)], axis=-1)
-        return array
-
-    def get_metadata(self, data: Dict) -> Dict:
-        masks = self.metadata.get("eval_mask_filenames")
-        if not masks:
-            return {}
-        with Image.open(masks[data["image_idx"]]) as img:
-            mask = img.convert("L")
-            if self.scale_factor != 1.0:
-                w, h = mask.size
-                mask = mask.resize((int(w * self.scale_factor), int(h * self.scale_factor)), Image.Resampling.NEAREST)
-            array = np.array(mask) > 127
-        return {"eval_mask": torch.from_numpy(array)[..., None]}
 
 
 @dataclass

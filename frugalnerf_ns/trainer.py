@@ -109,6 +109,7 @@ class FrugalTrainer(Trainer):
             CONSOLE.print("frugalnerf: no CUDA device: training on the CPU (--machine.device-type cpu says so).")
             config.machine.device_type = "cpu"
         super().__init__(config, local_rank, world_size)
+        self.last_saved_step = -1  # the newest step whose state is on disk (saved or loaded)
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         try:
@@ -190,7 +191,7 @@ class FrugalTrainer(Trainer):
         self.optimizers.zero_grad_all()
         if torch.cuda.is_available():
             torch.cuda.empty_cache()
-        if step - 1 > getattr(self, "last_saved_step", -1) and step > self._start_step:
+        if step - 1 > self.last_saved_step:  # steps trained since the last (or loaded) checkpoint
             self.save_checkpoint(step - 1)
             message += f"; steps up to {step - 1} are saved in {self.checkpoint_dir}"
         raise OptionError(message)

@@ -199,7 +199,8 @@ def test_nerfstudio_few_shot_conflicts_with_its_own_split_lists(tmp_path, proced
 
 
 def test_datamanager_puts_eval_masks_in_test_batches_only(tmp_path):
-    from frugalnerf_ns.datamanager import FrugalDataManagerConfig, FrugalDataset
+    from frugalnerf_ns.datamanager import FrugalDataManagerConfig
+    from frugalnerf_ns.dataset import FrugalDataset
 
     fx.write_dtu(tmp_path / "dtu")
     config = FrugalDataManagerConfig(dataparser=DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)))
