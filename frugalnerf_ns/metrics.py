@@ -26,14 +26,21 @@ def masked_psnr(rgb: Tensor, image: Tensor, mask: Tensor) -> float:
     return float(-10.0 * torch.log10(mse.clamp_min(10.0 ** (-PSNR_CAP_DB / 10.0))))
 
 
+def white_background(rgb: Tensor, mask: Tensor) -> Tensor:
+    """``rgb * mask + (1 - mask)``: the image with everything outside the object mask set to white (RegNeRF's
+    DTU evaluation does this to prediction and ground truth before SSIM and LPIPS)."""
+    mask = mask.to(rgb.dtype)
+    return rgb * mask + (1.0 - mask)
+
+
 def masked_image_metrics(
     rgb: Tensor, image: Tensor, mask: Tensor, ssim: Callable, lpips: Callable[[Tensor, Tensor], Optional[Tensor]]
 ) -> Dict[str, float]:
-    """DTU protocol (RegNeRF / SparseNeRF): PSNR over the object's pixels; SSIM and LPIPS on both images
-    with the background set to black. ``lpips`` may return None (unavailable): the metric is left out."""
-    mask = mask.to(rgb.dtype)
+    """DTU protocol as published (RegNeRF's ``eval.py``, reused by FreeNeRF and SparseNeRF): PSNR over the
+    object's pixels only; SSIM and LPIPS on the full images after BOTH have their background set to white
+    (``white_background``). ``lpips`` may return None (unavailable): the metric is left out."""
     to_nchw = lambda x: torch.moveaxis(x, -1, 0)[None]  # noqa: E731
-    masked_rgb, masked_image = to_nchw(rgb * mask), to_nchw(image * mask)
+    masked_rgb, masked_image = to_nchw(white_background(rgb, mask)), to_nchw(white_background(image, mask))
     metrics = {"psnr": masked_psnr(rgb, image, mask), "ssim": float(ssim(masked_image, masked_rgb))}
     distance = lpips(masked_image, masked_rgb)
     if distance is not None:

@@ -37,6 +37,17 @@ def test_markdown_table_has_a_row_per_run_and_averages():
     table = bench.markdown(runs).splitlines()
     assert len(table) == 2 + 4 + 2
     assert table[-2].startswith("| average | frugal | 19.00 |") and table[-1].startswith("| average | tensorf | 16.50 |")
+    assert "regnerf25" not in table[0]
+
+
+def test_markdown_table_shows_the_shorter_test_list_beside_the_full_one():
+    bench = load_script("benchmark_scenes")
+    run = {"scene": "dtu", "method": "frugal", "psnr": 15.0, "ssim": 0.7, "lpips": 0.2, "regnerf25_psnr": 16.5,
+           "regnerf25_ssim": 0.75, "regnerf25_lpips": 0.18, "train_seconds": 60.0, "checkpoint_mb": 1.0,
+           "peak_rss_mib": 1.0}
+    header, rule, row = bench.markdown([run]).splitlines()
+    assert "PSNR / SSIM / LPIPS (regnerf25)" in header and header.count("|") == rule.count("|")
+    assert "| 15.00 | 0.700 | 0.200 | 16.500 / 0.750 / 0.180 |" in row
 
 
 def test_torchmetrics_lpips_is_replaced_by_the_offline_one():

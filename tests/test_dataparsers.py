@@ -210,3 +210,19 @@ def test_datamanager_puts_eval_masks_in_test_batches_only(tmp_path):
     assert mask.shape == (fx.HEIGHT, fx.WIDTH, 1) and mask.dtype == torch.bool
     assert int(mask.sum()) == 15 * 20  # the fixture's mask rectangle
     assert "eval_mask" not in manager.train_dataset[0]
+
+
+def test_dtu_test_split_marks_regnerfs_25_views_among_pixelnerfs_40(tmp_path):
+    fx.write_dtu(tmp_path / "dtu", count=49)
+    parser = DTUDataParserConfig(data=tmp_path / "dtu").setup()
+    outputs = parser.get_dataparser_outputs("test")
+    names = [int(p.stem) for p in outputs.image_filenames]
+    assert len(names) == 40
+    regnerf = [names[n] for n in outputs.metadata["test_subsets"]["regnerf25"]]
+    assert len(regnerf) == 25
+    dropped = set(names) - set(regnerf)
+    assert dropped == {3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 36, 37, 38, 39}
+    # The training split and explicit test views carry no published subset.
+    assert "test_subsets" not in parser.get_dataparser_outputs("train").metadata
+    explicit = DTUDataParserConfig(data=tmp_path / "dtu", test_views=(1, 2, 3)).setup()
+    assert "test_subsets" not in explicit.get_dataparser_outputs("test").metadata

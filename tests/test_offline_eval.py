@@ -43,3 +43,10 @@ def test_full_scale_only_renders_the_same_rgb_without_lower_scales():
     assert "rgb_scale1" in everything and "rgb_scale1" not in only_full
     assert torch.allclose(only_full["rgb"], everything["rgb"], atol=1e-6)
     assert model.num_rendered_scales is None  # restored after the block
+
+
+def test_mean_scores_average_each_metric_over_the_views_that_have_it():
+    from frugalnerf_ns.offline_tools import mean_scores
+
+    views = [{"psnr": 10.0, "ssim": 0.5, "lpips": 0.2}, {"psnr": 20.0, "ssim": 0.7}]
+    assert mean_scores(views) == {"psnr": 15.0, "ssim": 0.6, "lpips": 0.2}

@@ -85,6 +85,11 @@ class DTU(DataParser):
             default_test, known_views = every_nth(len(images)), None
         views = self.config.split_views(len(images), default_test, known_views)
         indices = split_indices(split, views)
+        metadata = {}
+        if split in EVAL_SPLITS and len(images) == 49 and list(views.test) == default_test:
+            # Scored beside the pixelNeRF list: RegNeRF's 25 views, as positions in this split.
+            regnerf = excluded | set(table["regnerf_also_excluded"])
+            metadata["test_subsets"] = {"regnerf25": [n for n, i in enumerate(indices) if i not in regnerf]}
         check_images([images[i] for i in indices])
 
         K = torch.tensor(np.stack([intrinsics[i] for i in indices]), dtype=torch.float32) * factor
@@ -98,7 +103,6 @@ class DTU(DataParser):
             height=height,
             camera_type=CameraType.PERSPECTIVE,
         )
-        metadata = {}
         if split in EVAL_SPLITS and self.config.masked_eval:
             masks = list_images(data / "mask")
             if len(masks) != len(images):
