@@ -41,6 +41,14 @@ def target_rgb(image: Tensor, background: Tensor) -> Float[Tensor, "rays 3"]:
     return image[..., :3]
 
 
+def on_background(
+    rgb: Float[Tensor, "rays 3"], accumulation: Float[Tensor, "rays 1"], rendered_on: Tensor, wanted: Tensor
+) -> Float[Tensor, "rays 3"]:
+    """A render composited on ``rendered_on`` as it would be on ``wanted``: the background contributes
+    (1 - accumulation) of its colour (volume rendering's last term), so swap that share."""
+    return rgb + (1.0 - accumulation) * (wanted - rendered_on)
+
+
 def scale_color_weights(cfg: "FrugalNeRFModelConfig", num_scales: int, decay: float) -> List[float]:
     """Eq. 1's per-scale weights: the full scale's, then each lower scale's (decaying with the schedule)."""
     return [cfg.full_scale_color_weight] + [cfg.lower_scale_color_weight * decay] * (num_scales - 1)
@@ -163,8 +171,12 @@ def geometric_adaptation(
         warped = batch.warped
         white = torch.ones(3, device=render.background.device)
         target = target_rgb(batch.image.to(white.device), white)
-        # Eq. 6: novel rays have no ground truth; their own (detached) render is warped instead.
-        source = torch.cat([target, render.scales[0].rgb[batch.novel].detach()])
+        # Eq. 6: novel rays have no ground truth; their own (detached) render is warped instead. The views
+        # they are compared with are composited on white, so the render is too: on this step's random
+        # background (black half the time) every ray with accumulation < 1 would count as a large error.
+        full = render.scales[0]
+        novel_rgb = on_background(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
+        source = torch.cat([target, novel_rgb.detach()])
         with record_function("geometric_adaptation"):
             render.adaptation = cross_scale_geometric_adaptation(
                 render.origins[warped],

@@ -351,3 +351,28 @@ def test_the_model_reads_only_typed_batches():
     assert set(k for k in outputs if not k.startswith(("rgb", "depth", "accumulation"))) == {"step"}
     with pytest.raises(TypeError, match="needs a TrainBatch or EvalBatch from FrugalDataManager, got dict"):
         model.get_loss_dict(outputs, {"image": torch.rand(16, 3)})
+
+
+def test_a_render_on_black_recomposited_on_white_equals_the_render_on_white():
+    """Novel rays are compared with views composited on white (Eq. 6): their render, drawn on the step's
+    random background, is moved onto white first; on a partly transparent field that changes the colour."""
+    from frugalnerf_ns.objective import on_background
+    from frugalnerf_ns.raymarch import intersect_aabb
+    from frugalnerf_ns.rendering import render_scale
+
+    model = tiny_model()
+    torch.manual_seed(1)
+    origins = torch.tensor([[0.0, 0.0, 3.0]]).repeat(64, 1)
+    directions = torch.nn.functional.normalize(torch.randn(64, 3) * 0.2 + torch.tensor([0.0, 0.0, -1.0]), dim=-1)
+    segments = intersect_aabb(origins, directions, model.field.aabb, 0.05)
+    cfg = model.config
+    renders = {
+        name: render_scale(model.field, origins, directions, 0, torch.full((3,), value), segments, cfg.step_ratio,
+                           cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold, jitter=False)
+        for name, value in (("black", 0.0), ("white", 1.0))
+    }
+    acc = renders["black"].accumulation
+    assert float(acc.min()) < 0.99  # some light reaches the background, or the test shows nothing
+    moved = on_background(renders["black"].rgb, acc, torch.zeros(3), torch.ones(3))
+    assert torch.allclose(moved, renders["white"].rgb, atol=1e-5)
+    assert (renders["black"].rgb - renders["white"].rgb).abs().max() > 0.01
