@@ -7,10 +7,12 @@ SSIM / LPIPS / training time / checkpoint size / peak memory, side by side.
 Usage:
   python scripts/benchmark_scenes.py [--config configs/benchmark_scenes.yaml] [--scenes fern dtu_scan65]
          [--baselines tensorf nerfacto] [--variants no-geo no-novel single-scale] [--preset frugalnerf-cpu]
-         [--max-iterations N] [--out outputs/benchmark]
+         [--max-iterations N] [--seeds 42 43] [--out outputs/benchmark]
 
 ``--variants`` adds FrugalNeRF runs with the named option sets of the config's ``variants`` section (the
-paper's ablations), each labelled ``<preset>[<variant>]`` in the table.
+paper's ablations), each labelled ``<preset>[<variant>]`` in the table. ``--seeds`` repeats every run with each
+seed (nerfstudio's ``--machine.seed``; FrugalNeRF's batch sampler ``--pipeline.datamanager.seed`` too) and adds
+a mean row with the spread (max - min) per scene and method.
 """
 
 from __future__ import annotations
@@ -45,12 +47,23 @@ def run_location(out: Path, scene: str, method: str, label: str, timestamp: str 
     return experiment, out / "runs" / experiment / method / timestamp
 
 
+def seed_args(method: str, seed: Optional[int]) -> List[str]:
+    """Options that seed one run: torch/numpy/random for every method, our batch sampler for ours."""
+    if seed is None:
+        return []
+    ours = ["--pipeline.datamanager.seed", str(seed)] if method.startswith("frugalnerf") else []
+    return ["--machine.seed", str(seed), *ours]
+
+
 def run_method(
-    method: str, scene: str, data: Path, parser_args: List[str], extra: List[str], out: Path, label: Optional[str] = None
+    method: str, scene: str, data: Path, parser_args: List[str], extra: List[str], out: Path, label: Optional[str] = None,
+    seed: Optional[int] = None,
 ) -> Dict[str, Any]:
-    """Train ``method`` (shown as ``label``) on one scene, score its test views, return one table row."""
+    """Train ``method`` (shown as ``label``) on one scene with ``seed`` (None: the method's default), score its
+    test views, return one table row."""
     label = label or method
-    timestamp = "bench"
+    timestamp = "bench" if seed is None else f"seed{seed}"
+    extra = [*extra, *seed_args(method, seed)]
     experiment, run_dir = run_location(out, scene, method, label, timestamp)
     train = [
         "/usr/bin/time", "-f", "PEAK_RSS_KB %M",
@@ -80,6 +93,7 @@ def run_method(
         "checkpoint_mb": ckpt.stat().st_size / 1e6,
         "peak_rss_mib": int(peak[-1].split()[1]) / 1024 if peak else None,
         "run_dir": str(run_dir),
+        "seed": seed,
     }
 
 
@@ -88,7 +102,9 @@ def markdown(results: List[Dict[str, Any]]) -> str:
     pixelNeRF's 40) get those three metrics in extra columns."""
     subsets = list(dict.fromkeys(k[: -len("_psnr")] for r in results for k in r if k.endswith("_psnr")))
     head = "| scene | method | PSNR | SSIM | LPIPS |" + "".join(f" PSNR / SSIM / LPIPS ({s}) |" for s in subsets)
-    rows = [head + " train time | checkpoint MB | peak RSS MiB |", "|---" * (8 + len(subsets)) + "|"]
+    seeded = any(r.get("seed") is not None for r in results)
+    head = head.replace("| method |", "| method | seed |") if seeded else head
+    rows = [head + " train time | checkpoint MB | peak RSS MiB |", "|---" * (8 + len(subsets) + seeded) + "|"]
 
     def cells(r: Dict[str, Any]) -> str:
         text = f"{r['psnr']:.2f} | {r['ssim']:.3f} | {r.get('lpips', float('nan')):.3f} |"
@@ -100,17 +116,29 @@ def markdown(results: List[Dict[str, Any]]) -> str:
     methods = list(dict.fromkeys(r["method"] for r in results))
     scenes = list(dict.fromkeys(r["scene"] for r in results))
     for r in results:
+        seed = f" {r.get('seed')} |" if seeded else ""
         rows.append(
-            f"| {r['scene']} | {r['method']} | {cells(r)} "
+            f"| {r['scene']} | {r['method']} |{seed} {cells(r)} "
             f"{r['train_seconds'] / 60:.1f} min | {r['checkpoint_mb']:.1f} | {r['peak_rss_mib'] or 0:.0f} |"
         )
+    for scene in scenes:
+        for m in methods:
+            rs = [r for r in results if r["scene"] == scene and r["method"] == m]
+            if seeded and len(rs) > 1:
+                spread = {k: max(r[k] for r in rs) - min(r[k] for r in rs) for k in ("psnr", "ssim", "lpips")}
+                mean = {k: statistics.fmean(r[k] for r in rs) for k in ("psnr", "ssim", "lpips", "train_seconds")}
+                rows.append(
+                    f"| {scene} | {m} | mean of {len(rs)} (spread) | {mean['psnr']:.2f} ({spread['psnr']:.2f}) | "
+                    f"{mean['ssim']:.3f} ({spread['ssim']:.3f}) | {mean['lpips']:.3f} ({spread['lpips']:.3f}) |"
+                    + " |" * len(subsets) + f" {mean['train_seconds'] / 60:.1f} min | | |"
+                )
     if len(scenes) > 1:
         for m in methods:
             rs = [r for r in results if r["method"] == m]
-            if len(rs) == len(scenes):
+            if len({r["scene"] for r in rs}) == len(scenes):
                 avg = {k: statistics.fmean(r[k] for r in rs) for k in ("psnr", "ssim", "lpips", "train_seconds", "checkpoint_mb")}
                 rows.append(
-                    f"| average | {m} | {avg['psnr']:.2f} | {avg['ssim']:.3f} | {avg['lpips']:.3f} |"
+                    f"| average | {m} |" + (" all |" if seeded else "") + f" {avg['psnr']:.2f} | {avg['ssim']:.3f} | {avg['lpips']:.3f} |"
                     + " |" * len(subsets) + f" {avg['train_seconds'] / 60:.1f} min | {avg['checkpoint_mb']:.1f} | |"
                 )
     return "\n".join(rows)
@@ -125,6 +153,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     parser.add_argument("--preset", help="FrugalNeRF method for every scene (default: each scene's preset)")
     parser.add_argument("--only-baselines", action="store_true", help="skip FrugalNeRF (e.g. to add baselines later)")
     parser.add_argument("--max-iterations", type=int, help="override every method's iteration budget")
+    parser.add_argument("--seeds", type=int, nargs="*", default=[], help="repeat every run with each seed")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "benchmark")
     args = parser.parse_args(argv)
 
@@ -145,9 +174,9 @@ def main(argv: Optional[List[str]] = None) -> None:
         for baseline in args.baselines:
             extra = list(config["baselines"][baseline]["args"]) + budget
             runs.append((baseline, baseline, scene["baseline_parser"], extra))
-        for method, label, parser_args, extra in runs:
-            print(f"benchmark: {name}: training {label} ...", flush=True)
-            results.append(run_method(method, name, data, parser_args, extra, args.out, label))
+        for (method, label, parser_args, extra), seed in [(run, seed) for run in runs for seed in args.seeds or [None]]:
+            print(f"benchmark: {name}: training {label}" + (f" (seed {seed})" if seed is not None else "") + " ...", flush=True)
+            results.append(run_method(method, name, data, parser_args, extra, args.out, label, seed))
             r = results[-1]
             args.out.mkdir(parents=True, exist_ok=True)
             (args.out / "benchmark_scenes.json").write_text(json.dumps(results, indent=2))  # partial results survive

@@ -88,3 +88,19 @@ def test_variant_runs_keep_the_registered_method_name_in_their_path(tmp_path):
     assert experiment == "fern-no-geo"
     # nerfstudio writes <output>/<experiment>/<method>/<timestamp>; the method part must be registered.
     assert run_dir == tmp_path / "runs" / "fern-no-geo" / "frugalnerf-cpu" / "bench"
+
+
+def test_markdown_table_with_seeds_adds_mean_and_spread_rows():
+    bench = load_script("benchmark_scenes")
+    runs = [
+        {"scene": s, "method": "frugal", "seed": seed, "psnr": p, "ssim": 0.5, "lpips": 0.4, "train_seconds": 60.0,
+         "checkpoint_mb": 10.0, "peak_rss_mib": 1.0}
+        for s, seed, p in [("a", 1, 18.0), ("a", 2, 18.5), ("b", 1, 20.0), ("b", 2, 19.0)]
+    ]
+    table = bench.markdown(runs).splitlines()
+    assert all(line.count("|") == table[0].count("|") for line in table)
+    assert "| a | frugal | mean of 2 (spread) | 18.25 (0.50) |" in table[6]
+    assert "| b | frugal | mean of 2 (spread) | 19.50 (1.00) |" in table[7]
+    assert table[-1].startswith("| average | frugal | all | 18.88 |")
+    assert bench.seed_args("frugalnerf-cpu", 3) == ["--machine.seed", "3", "--pipeline.datamanager.seed", "3"]
+    assert bench.seed_args("tensorf", 3) == ["--machine.seed", "3"] and bench.seed_args("tensorf", None) == []
