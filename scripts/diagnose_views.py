@@ -33,11 +33,13 @@ def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tenso
     bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
     with torch.no_grad():
         outputs = model.get_outputs_for_camera_ray_bundle(bundle)
-    image = dataset[index]["image"][..., :3]
+    image = dataset[index]["image"][..., :3].float()
     rows: List[Dict[str, float]] = []
     pictures = [(image.numpy() * 255).astype(np.uint8)]
     depths = []
-    for scale in range(model.field.num_scales):
+    # nerfstudio's own methods (tensorf) render one scale with the same output names.
+    num_scales = getattr(getattr(model, "field", None), "num_scales", 1)
+    for scale in range(num_scales):
         suffix = "" if scale == 0 else f"_scale{scale}"
         rgb = outputs[f"rgb{suffix}"].clamp(0, 1).cpu()
         acc = outputs[f"accumulation{suffix}"].cpu()
