@@ -49,3 +49,25 @@ def test_fern_four_views_sampled_uniformly_from_non_test_frames():
     outputs = AutoDataParserConfig(data=FERN, num_train_views=4).setup().get_dataparser_outputs("train")
     names = [p.name for p in outputs.image_filenames]
     assert len(names) == 4 and not {"image000.png", "image008.png", "image016.png"} & set(names)
+
+
+FLOWER = DATA / "llff" / "flower"
+
+
+@pytest.mark.skipif(not FLOWER.is_dir(), reason=f"real LLFF scene not present at {FLOWER}")
+def test_flower_paper_split_at_both_resolutions():
+    for factor, width, height in ((8, 504, 378), (4, 1008, 756)):  # CPU and the paper's (GPU) resolution
+        parser = LLFFDataParserConfig(data=FLOWER, downscale_factor=factor).setup()
+        train, test = parser.get_dataparser_outputs("train"), parser.get_dataparser_outputs("test")
+        assert [p.name for p in train.image_filenames] == ["image011.png", "image022.png"]
+        assert [p.name for p in test.image_filenames] == [f"image{i:03d}.png" for i in (0, 8, 16, 24, 32)]
+        assert (int(train.cameras.width[0, 0]), int(train.cameras.height[0, 0])) == (width, height)
+        assert f"images_{factor}" in str(train.image_filenames[0])
+
+
+@needs_dtu
+def test_dtu_regnerf_test_list_is_marked_within_the_pixelnerf_list():
+    test = DTUDataParserConfig(data=SCAN65).setup().get_dataparser_outputs("test")
+    names = [int(p.stem) for p in test.image_filenames]
+    regnerf = sorted(names[n] for n in test.metadata["test_subsets"]["regnerf25"])
+    assert regnerf == [1, 2, 9, 10, 11, 12, 14, 15, 23, 24, 26, 27, 29, 30, 31, 32, 33, 34, 35, 41, 42, 43, 45, 46, 47]
