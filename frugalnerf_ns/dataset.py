@@ -4,7 +4,7 @@ image of a dataset, and the DTU evaluation mask."""
 from __future__ import annotations
 
 from functools import cached_property
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -48,13 +48,21 @@ class FrugalDataset(InputDataset):
         return array
 
     def get_metadata(self, data: Dict) -> Dict:
-        masks = self.metadata.get("eval_mask_filenames")
-        if not masks:
-            return {}
-        with Image.open(masks[data["image_idx"]]) as img:
-            mask = img.convert("L")
-            if self.scale_factor != 1.0:
-                w, h = mask.size
-                mask = mask.resize((int(w * self.scale_factor), int(h * self.scale_factor)), Image.Resampling.NEAREST)
-            array = np.array(mask) > 127
-        return {"eval_mask": torch.from_numpy(array)[..., None]}
+        mask = read_eval_mask(self, data["image_idx"])
+        return {} if mask is None else {"eval_mask": mask}
+
+
+def read_eval_mask(dataset: InputDataset, index: int) -> Optional[torch.Tensor]:
+    """The evaluation mask (bool, H x W x 1) of image ``index`` where the dataparser lists eval masks, for any
+    InputDataset: nerfstudio's own methods (tensorf) use theirs, which does not load it, and the offline
+    evaluator must mask them the same way."""
+    masks = (dataset.metadata or {}).get("eval_mask_filenames")
+    if not masks:
+        return None
+    with Image.open(masks[index]) as img:
+        mask = img.convert("L")
+        if dataset.scale_factor != 1.0:
+            w, h = mask.size
+            mask = mask.resize((int(w * dataset.scale_factor), int(h * dataset.scale_factor)), Image.Resampling.NEAREST)
+        array = np.array(mask) > 127
+    return torch.from_numpy(array)[..., None]

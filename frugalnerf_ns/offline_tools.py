@@ -69,6 +69,7 @@ def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, flo
     from nerfstudio.utils.eval_utils import eval_setup
     from torchmetrics.functional import structural_similarity_index_measure as ssim
 
+    from frugalnerf_ns.dataset import read_eval_mask
     from frugalnerf_ns.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.metrics import masked_image_metrics
 
@@ -84,9 +85,11 @@ def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, flo
     pipeline.eval()
     for index in range(len(dataset)):
         camera = dataset.cameras[index : index + 1].to(pipeline.device)
-        data = dataset[index]  # FrugalDataset: the image, and the eval mask where the dataparser lists one
+        data = dataset[index]
         image = data["image"][..., :3].to(pipeline.device)
-        mask = data.get("eval_mask")
+        # The eval mask where the dataparser lists one, also for nerfstudio's datasets (tensorf's), which
+        # do not load it: every method is scored on the same pixels.
+        mask = data["eval_mask"] if "eval_mask" in data else read_eval_mask(dataset, index)
         rgb = render_test_rgb(pipeline.model, camera, mask)
         if mask is None:
             mask = torch.ones(*image.shape[:2], 1, dtype=torch.bool)

@@ -226,3 +226,22 @@ def test_dtu_test_split_marks_regnerfs_25_views_among_pixelnerfs_40(tmp_path):
     assert "test_subsets" not in parser.get_dataparser_outputs("train").metadata
     explicit = DTUDataParserConfig(data=tmp_path / "dtu", test_views=(1, 2, 3)).setup()
     assert "test_subsets" not in explicit.get_dataparser_outputs("test").metadata
+
+
+def test_eval_masks_are_read_for_nerfstudios_own_dataset_too(tmp_path):
+    """tensorf's datamanager builds a plain InputDataset, which ignores eval masks; the offline evaluator
+    reads them with ``read_eval_mask`` so baselines are scored on the same pixels."""
+    from nerfstudio.data.datasets.base_dataset import InputDataset
+
+    from frugalnerf_ns.dataset import FrugalDataset, read_eval_mask
+
+    fx.write_dtu(tmp_path / "dtu")
+    outputs = DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)).setup().get_dataparser_outputs("test")
+    plain = InputDataset(outputs)
+    assert "eval_mask" not in plain[0]
+    mask = read_eval_mask(plain, 0)
+    assert mask.shape == (fx.HEIGHT, fx.WIDTH, 1) and mask.dtype == torch.bool
+    assert mask[5:20, 10:30].all() and int(mask.sum()) == 15 * 20  # the fixture's object rectangle
+    assert torch.equal(FrugalDataset(outputs)[0]["eval_mask"], mask)
+    train = DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)).setup().get_dataparser_outputs("train")
+    assert read_eval_mask(InputDataset(train), 0) is None
