@@ -92,6 +92,9 @@ def main(argv=None) -> None:
     from nerfstudio.utils.eval_utils import eval_setup
     from PIL import Image
 
+    from frugalnerf_ns.offline_tools import patch_torchmetrics_lpips
+
+    patch_torchmetrics_lpips()  # nerfstudio's methods build torchmetrics' LPIPS, which would download weights
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
     model = pipeline.model
     model.eval()
