@@ -69,6 +69,7 @@ def main(argv=None) -> None:
     if not args.config.is_file():
         raise SystemExit(f"check_pseudo_depth: error: {args.config} is not a file (pass <run>/config.yml)")
 
+    from nerfstudio.cameras.rays import RayBundle
     from nerfstudio.utils.eval_utils import eval_setup
 
     from frugalnerf_ns.camera_conventions import llff_to_opengl
@@ -107,8 +108,6 @@ def main(argv=None) -> None:
             directions.append(bundle.directions)
             truth.append(distance.float())
         origins, directions, truth = torch.cat(origins), torch.cat(directions), torch.cat(truth)
-        from nerfstudio.cameras.rays import RayBundle
-
         bundle = RayBundle(origins=origins.to(model.device), directions=directions.to(model.device),
                            pixel_area=torch.ones(len(origins), 1, device=model.device),
                            camera_indices=torch.zeros(len(origins), 1, dtype=torch.long, device=model.device))
