@@ -1,0 +1,103 @@
+"""scripts/gpu_check.py on a machine without a GPU: its one-line answer, and a dry run of its parts on the CPU."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("gpu_check", ROOT / "scripts" / "gpu_check.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)  # type: ignore[union-attr]
+    return module
+
+
+gpu_check = _load()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_without_cuda_one_line_and_exit_zero(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_check.py"), "--out", str(tmp_path)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("gpu_check: no CUDA device")
+    assert not (tmp_path / "gpu_check.json").exists()
+
+
+def test_misplaced_names_tensors_on_the_wrong_device_type():
+    tensors = [("grid", torch.zeros(2)), ("note", "not a tensor")]
+    assert gpu_check.misplaced(iter(tensors), torch.device("cuda")) == ["grid"]
+    assert gpu_check.misplaced(iter(tensors), torch.device("cpu")) == []
+    nested = {"rgb": [torch.zeros(1), {"depth": torch.ones(1)}], "n": 3}
+    assert [name for name, _ in gpu_check.walk("out", nested)] == ["out.rgb[0]", "out.rgb[1].depth"]
+
+
+def test_cpu_path_counter_sees_the_index_add_backward():
+    from frugalnerf_ns.tensorial import sample_plane
+
+    plane = torch.randn(1, 3, 8, 8, requires_grad=True)
+    x, y = torch.rand(10) * 2 - 1, torch.rand(10) * 2 - 1
+    with gpu_check.count_cpu_path_calls() as counts:
+        sample_plane(plane, x, y).sum().backward()
+        with torch.no_grad():
+            sample_plane(plane, x, y)  # no gradient: grid_sample, not the CPU path
+    assert counts == {"cpu": 1, "cuda": 0}
+    assert plane.grad is not None and plane.grad.abs().sum() > 0
+
+
+def test_quadratic_memory_fit_recovers_the_model():
+    points = [(r, 500.0 + 0.003 * r * r) for r in (100, 300, 640, 900)]
+    a, b = gpu_check.fit_quadratic(points)
+    assert a == pytest.approx(500.0) and b == pytest.approx(0.003)
+
+
+def test_tcnn_layout_reader_reproduces_a_bias_free_mlp():
+    torch.manual_seed(0)
+    in_dim, hidden = 27, 32
+    w1, w2, w3 = torch.randn(hidden, 32), torch.randn(hidden, hidden) * 0.2, torch.randn(16, hidden) * 0.2
+    params = torch.cat([w1.flatten(), w2.flatten(), w3.flatten()])
+    forward, used = gpu_check.torch_mlp_from_tcnn(params, in_dim, hidden, row_major=True, pad_value=1.0)
+    assert used == params.numel()
+    x = torch.rand(5, in_dim)
+    padded = torch.cat([x, torch.ones(5, 32 - in_dim)], dim=-1)
+    expected = torch.sigmoid(torch.relu(torch.relu(padded @ w1.t()) @ w2.t()) @ w3.t())[:, :3]
+    assert torch.allclose(forward(x), expected, atol=1e-5)
+    other, _ = gpu_check.torch_mlp_from_tcnn(params, in_dim, hidden, row_major=False, pad_value=1.0)
+    assert not torch.allclose(other(x), expected, atol=1e-3)
+
+
+def test_dry_run_of_the_in_process_parts_writes_table_and_json(tmp_path, capsys):
+    code = gpu_check.main(["--dry-run", "--parts", "presets", "grid_sample", "tcnn", "--presets", "frugalnerf-tiny",
+                           "frugalnerf", "--scenes", "procedural", "--out", str(tmp_path)])
+    assert code == 0
+    summary = json.loads((tmp_path / "gpu_check.json").read_text())
+    assert summary["dry_run"] and summary["machine"]["device"] == "cpu"
+    rows = {(row["part"], row.get("preset")): row for row in summary["rows"]}
+    for preset in ("frugalnerf-tiny", "frugalnerf"):
+        row = rows[("presets", preset)]
+        assert row["ok"] and row["losses_finite"] and row["cpu_path_calls_on_gpu"] == 0
+        assert row["s_per_step"] > 0 and row["peak_mib"] > 0 and row["color_mlp"] == "torch"
+    sample = next(row for row in summary["rows"] if row["part"] == "grid_sample")
+    assert sample["max_grad_difference"] < 1e-3 and sample["used"] == "index_add"
+    assert rows[("tcnn", "colour MLP")]["skipped"] == "no CUDA device"
+    printed = capsys.readouterr().out
+    assert "| presets | frugalnerf-tiny | procedural |" in printed and f"{len(summary['rows'])}/{len(summary['rows'])} rows ok" in printed
+
+
+@pytest.mark.slow
+def test_dry_run_of_every_part(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_check.py"), "--dry-run", "--scenes", "procedural",
+                           "--out", str(tmp_path)], capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    parts = {row["part"] for row in json.loads((tmp_path / "gpu_check.json").read_text())["rows"]}
+    assert parts == set(gpu_check.PARTS)
