@@ -43,7 +43,6 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
 
 PARTS = ("presets", "paper", "speed", "grid_sample", "memory", "tcnn")
 PAPER_TARGET = {"psnr": 17.4, "ssim": 0.47, "lpips": 0.41, "train_seconds": 300.0}
@@ -230,23 +229,23 @@ def part_presets(args, device: torch.device, scenes: Dict[str, Dict[str, Any]]) 
 
 # ---- part: paper preset trained on fern ------------------------------------------------------------------
 def part_paper(args, device: torch.device, scenes: Dict[str, Dict[str, Any]]) -> List[Dict[str, Any]]:
-    from benchmark_scenes import run_method
+    from frugalnerf_ns.sweep.grid import RunSpec
+    from frugalnerf_ns.sweep.runner import execute
 
     if args.dry_run:
-        method, scene, data = "frugalnerf-tiny", "procedural", scenes["procedural"]["data"]
-        parser_args, extra = [], ["--max-num-iterations", "4"]
+        spec = RunSpec("procedural", 0, "frugalnerf-tiny", "full", str(scenes["procedural"]["data"]), [],
+                       ["--max-num-iterations", "4"])
     else:
         if "fern" not in scenes:
             return [{"part": "paper", "ok": False, "error": f"no LLFF fern at {args.fern} (--fern)"}]
-        method, scene, data = "frugalnerf", "fern_images4", scenes["fern"]["data"]
-        parser_args = ["frugal-llff", "--downscale-factor", "4", "--train-views", "6", "13"]
-        extra = []
-    print(f"gpu_check: paper: training {method} on {scene} to completion ...", flush=True)
-    try:
-        result = run_method(method, scene, data, parser_args, extra, args.out / "paper")
-    except SystemExit as err:  # run_method exits with the failure's stderr tail
-        return [{"part": "paper", "preset": method, "scene": scene, "ok": False, "error": str(err).splitlines()[-1][:200]}]
-    row = {"part": "paper", "preset": method, "scene": scene, **{k: result[k] for k in ("psnr", "ssim", "lpips", "train_seconds")}}
+        spec = RunSpec("fern_images4", 2, "frugalnerf", "full", str(scenes["fern"]["data"]),
+                       ["frugal-llff", "--downscale-factor", "4", "--train-views", "6", "13"], [])
+    print(f"gpu_check: paper: training {spec.method} on {spec.scene} to completion ...", flush=True)
+    record = execute(spec, args.out / "paper")
+    row: Dict[str, Any] = {"part": "paper", "preset": spec.method, "scene": spec.scene}
+    if record["status"] != "ok":
+        return [{**row, "ok": False, "error": f"{record.get('error')} (log {record.get('log')})"}]
+    row.update({k: record[k] for k in ("psnr", "ssim", "lpips", "train_seconds")})
     row["meets_target"] = (row["psnr"] >= PAPER_TARGET["psnr"] and row["ssim"] >= PAPER_TARGET["ssim"]
                            and row["lpips"] <= PAPER_TARGET["lpips"] and row["train_seconds"] <= PAPER_TARGET["train_seconds"])
     row["ok"] = all(math.isfinite(row[k]) for k in ("psnr", "ssim", "lpips"))

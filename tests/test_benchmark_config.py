@@ -23,7 +23,8 @@ def test_scene_config_uses_registered_presets_and_parsers():
     parsers = {ep.name for ep in entry_points(group="nerfstudio.dataparser_configs")}
     for name, scene in config["scenes"].items():
         assert scene["preset"] in methods, name
-        assert scene["parser"][0] in parsers and scene["baseline_parser"][0] in parsers, name
+        assert scene["parser"][0] in parsers, name
+        assert {2, 3} <= set(scene["views"]), name  # the paper's 2- and 3-view settings
     assert set(config["baselines"]) >= {"tensorf", "nerfacto"}
 
 
@@ -82,12 +83,18 @@ def test_ablation_variants_name_real_options_of_the_presets():
 
 
 def test_variant_runs_keep_the_registered_method_name_in_their_path(tmp_path):
-    bench = load_script("benchmark_scenes")
-    assert bench.run_location(tmp_path, "fern", "tensorf", "tensorf") == ("fern", tmp_path / "runs/fern/tensorf/bench")
-    experiment, run_dir = bench.run_location(tmp_path, "fern", "frugalnerf-cpu", "frugalnerf-cpu[no-geo]")
-    assert experiment == "fern-no-geo"
+    from frugalnerf_ns.sweep.grid import expand
+    from frugalnerf_ns.sweep.runner import run_location
+
+    config = ROOT / "configs" / "benchmark_scenes.yaml"
+    full, no_geo, tensorf = expand(config, ["fern"], [2], ["frugalnerf-cpu", "tensorf"],
+                                   {"full": [], "no-geo": ["--pipeline.model.geo-weight", "0"]}, [None])
+    assert (full.label, no_geo.label, tensorf.label) == ("frugalnerf-cpu", "frugalnerf-cpu[no-geo]", "tensorf")
     # nerfstudio writes <output>/<experiment>/<method>/<timestamp>; the method part must be registered.
-    assert run_dir == tmp_path / "runs" / "fern-no-geo" / "frugalnerf-cpu" / "bench"
+    experiment, run_dir = run_location(no_geo, tmp_path)
+    assert experiment == "fern-2v" and run_dir == tmp_path / "runs" / "fern-2v" / "frugalnerf-cpu" / no_geo.key
+    assert run_location(full, tmp_path)[1] != run_dir
+    assert tensorf.parser_args[-2:] == ["--ndc", "False"] and "--ndc" not in full.parser_args
 
 
 def test_markdown_table_with_seeds_adds_mean_and_spread_rows():
@@ -102,5 +109,7 @@ def test_markdown_table_with_seeds_adds_mean_and_spread_rows():
     assert "| a | frugal | mean of 2 (spread) | 18.25 (0.50) |" in table[6]
     assert "| b | frugal | mean of 2 (spread) | 19.50 (1.00) |" in table[7]
     assert table[-1].startswith("| average | frugal | all | 18.88 |")
-    assert bench.seed_args("frugalnerf-cpu", 3) == ["--machine.seed", "3", "--pipeline.datamanager.seed", "3"]
-    assert bench.seed_args("tensorf", 3) == ["--machine.seed", "3"] and bench.seed_args("tensorf", None) == []
+    from frugalnerf_ns.sweep.grid import seed_args
+
+    assert seed_args("frugalnerf-cpu", 3) == ["--machine.seed", "3", "--pipeline.datamanager.seed", "3"]
+    assert seed_args("tensorf", 3) == ["--machine.seed", "3"] and seed_args("tensorf", None) == []

@@ -49,7 +49,8 @@ def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tm
     runs = {row["run"] for row in rows}
     assert runs == {"frugalnerf-tiny/20", "frugalnerf-tiny/20/L=0", "frugalnerf-tiny/20/grid=24", "tensorf/10"}
     # The grid sweep's run really trained at that grid: its config asks for 24^3 final voxels.
-    config = (out / "runs" / "frugalnerf-tiny-20-grid=24" / "frugalnerf-tiny" / "run" / "config.yml").read_text()
+    run_dir = next(row["run_dir"] for row in rows if row["run"] == "frugalnerf-tiny/20/grid=24")
+    config = (Path(run_dir) / "config.yml").read_text()
     assert f"final_voxels: {24 ** 3}" in config and "seed: 3" in config
     anytime = sorted(row["step"] for row in rows if row["run"] == "frugalnerf-tiny/20")
     assert anytime == [11, 20]  # a checkpoint every 10 steps and the last one
