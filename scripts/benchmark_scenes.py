@@ -28,7 +28,7 @@ from typing import List, Optional
 import yaml
 
 from frugalnerf_ns.sweep.cli import run_sweep
-from frugalnerf_ns.sweep.grid import ROOT, SCENE_PRESET, GridError, expand
+from frugalnerf_ns.sweep.grid import ROOT, SCENE_PRESET, GridError, expand, scene_data
 from frugalnerf_ns.sweep.report import scene_table
 
 markdown = scene_table  # the table this script has always written
@@ -50,7 +50,10 @@ def main(argv: Optional[List[str]] = None) -> None:
 
     config = yaml.safe_load(args.config.read_text())
     names = args.scenes or list(config["scenes"])
-    present = [n for n in names if (ROOT / config["scenes"].get(n, {}).get("data", "?")).is_dir()]
+    unknown_scenes = sorted(set(names) - set(config["scenes"]))
+    if unknown_scenes:
+        sys.exit(f"benchmark: unknown scenes {unknown_scenes}; {args.config} has {sorted(config['scenes'])}")
+    present = [n for n in names if scene_data(args.config, config, n).is_dir()]
     for name in sorted(set(names) - set(present)):
         print(f"benchmark: skipping {name}: its data is not on this machine")
     unknown = sorted(set(args.variants) - set(config.get("variants") or {}))

@@ -29,7 +29,7 @@ from typing import List, Optional, Sequence
 import yaml
 
 from frugalnerf_ns.sweep.cli import run_sweep
-from frugalnerf_ns.sweep.grid import ROOT, RunSpec, scene_parser, seed_args
+from frugalnerf_ns.sweep.grid import ROOT, RunSpec, scene_data, scene_parser, seed_args
 from frugalnerf_ns.sweep.report import anytime_rows, anytime_table, pareto_front, plot  # noqa: F401 (pareto_front: tests)
 
 markdown = anytime_table
@@ -77,9 +77,10 @@ def main(argv=None) -> None:
             parser.error(f"unknown scene {args.scene!r}; {args.config} has {sorted(table)}")
         entry = table[args.scene]
         scene, views = args.scene, args.views
-        _, parser_args = scene_parser(args.config, {"scenes": table}, scene, views, baseline=False)
-        _, baseline_parser = scene_parser(args.config, {"scenes": table}, scene, views, baseline=True)
-        data = (ROOT / entry["data"]).resolve()
+        config = yaml.safe_load(args.config.read_text())
+        _, parser_args = scene_parser(args.config, config, scene, views, baseline=False)
+        _, baseline_parser = scene_parser(args.config, config, scene, views, baseline=True)
+        data = scene_data(args.config, config, scene)
         presets = args.presets or [entry["preset"]]
     elif args.data:
         scene, views = args.data.name, 0

@@ -13,7 +13,8 @@ A grid file (``configs/sweeps/*.yaml``)::
     max_iterations: null                    # every method's budget (null: its own)
     anytime_every: null                     # also score a checkpoint every N steps
 
-A scene in the scenes file gives ``data`` (relative to ``data_root``, by default the repository root), the
+A scene in the scenes file gives ``data`` (relative to the file's ``data_root``, itself relative to the file;
+without one, the repository root), the
 dataparser and its options (``parser``), the options that pick each view count (``views``), extra dataparser
 options for nerfstudio's methods (``baseline_options``) and its CPU preset (``preset``).
 """
@@ -102,6 +103,19 @@ def load_scenes(path: Path) -> Dict[str, Any]:
     return table
 
 
+def data_root_of(scenes_file: Path, table: Mapping[str, Any], data_root: Optional[Path] = None) -> Path:
+    """Where the scenes' ``data`` paths start: ``data_root`` if given, else the file's own ``data_root``
+    (relative to the file), else the repository root."""
+    if data_root is not None:
+        return Path(data_root).resolve()
+    root = Path(table.get("data_root") or ROOT)
+    return root if root.is_absolute() else (Path(scenes_file).parent / root).resolve()
+
+
+def scene_data(scenes_file: Path, table: Mapping[str, Any], name: str, data_root: Optional[Path] = None) -> Path:
+    return (data_root_of(scenes_file, table, data_root) / table["scenes"][name]["data"]).resolve()
+
+
 def scene_parser(scenes_file: Path, table: Mapping[str, Any], name: str, views: int, baseline: bool) -> tuple:
     """(data path, dataparser args) of scene ``name`` with ``views`` training views."""
     if name not in table["scenes"]:
@@ -130,9 +144,6 @@ def expand(
     """Every (scene, views, method, option, seed). ``options`` maps a name to ns-train args; nerfstudio's own
     methods run once per scene, views and seed, with the scenes file's baseline args instead."""
     table = load_scenes(scenes_file)
-    root = Path(data_root) if data_root is not None else Path(table.get("data_root") or ROOT)
-    if not root.is_absolute():
-        root = (Path(scenes_file).parent / root).resolve()
     baselines = table.get("baselines") or {}
     budget = ["--max-num-iterations", str(max_iterations)] if max_iterations else []
     unknown = [name for name in scenes if name not in table["scenes"]]
@@ -147,14 +158,15 @@ def expand(
                 if not ours and method not in baselines:
                     raise GridError(f"{scenes_file}: method {method!r} is neither a FrugalNeRF preset nor one of its "
                                     f"baselines ({', '.join(baselines) or 'none'})")
-                data, parser_args = scene_parser(scenes_file, table, scene, count, baseline=not ours)
+                _, parser_args = scene_parser(scenes_file, table, scene, count, baseline=not ours)
                 sets = options.items() if ours else [("full", [*map(str, baselines[method].get("args", []))])]
                 for option, args in sets:
                     for seed in seeds:
                         train_args = [*args, *budget, *seed_args(method, seed)]
                         if anytime_every:
                             train_args += ["--steps-per-save", str(anytime_every), "--save-only-latest-checkpoint", "False"]
-                        specs.append(RunSpec(scene, int(count), method, option, str((root / data).resolve()), parser_args,
+                        specs.append(RunSpec(scene, int(count), method, option,
+                                             str(scene_data(scenes_file, table, scene, data_root)), parser_args,
                                              train_args, seed, anytime_every))
     keys = [s.key for s in specs]
     if len(set(keys)) != len(keys):
