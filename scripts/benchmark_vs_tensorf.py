@@ -20,7 +20,6 @@ import resource
 import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any, Dict, List
 
@@ -70,12 +69,11 @@ def _peak_rss_mib() -> float:
 
 def run_worker(method: str, args: argparse.Namespace) -> Dict[str, Any]:
     import torch
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
-    from nerfstudio.engine.optimizers import Optimizers
     from torchmetrics.functional import structural_similarity_index_measure
 
     from frugalnerf_ns.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.offline_tools import patch_torchmetrics_lpips
+    from frugalnerf_ns.stepping import optimizers_and_callbacks, run_steps
 
     patch_torchmetrics_lpips()
     torch.manual_seed(0)
@@ -83,31 +81,12 @@ def run_worker(method: str, args: argparse.Namespace) -> Dict[str, Any]:
     config = _trainer_config(method, args)
     pipeline = config.pipeline.setup(device=device, test_mode="val", world_size=1, local_rank=0)
     pipeline.train()
-    optimizers = Optimizers(dict(config.optimizers), pipeline.get_param_groups())
-    callbacks = pipeline.get_training_callbacks(
-        TrainingCallbackAttributes(optimizers=optimizers, grad_scaler=None, pipeline=pipeline, trainer=None)
-    )
+    optimizers, callbacks = optimizers_and_callbacks(config, pipeline)
     num_parameters = sum(p.numel() for p in pipeline.model.parameters())
     rss_before = _peak_rss_mib()
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
-
-    times: List[float] = []
-    for step in range(args.iterations):
-        start = time.perf_counter()
-        for callback in callbacks:
-            callback.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        optimizers.zero_grad_all()
-        _, loss_dict, _ = pipeline.get_train_loss_dict(step=step)
-        loss = sum(loss_dict.values())
-        loss.backward()  # type: ignore[union-attr]
-        optimizers.optimizer_step_all()
-        optimizers.scheduler_step_all(step)
-        for callback in callbacks:
-            callback.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-        if device == "cuda":
-            torch.cuda.synchronize()
-        times.append(time.perf_counter() - start)
+    times, _, _ = run_steps(pipeline, optimizers, callbacks, args.iterations)
 
     # Test views, scored by the same code for both methods.
     pipeline.eval()

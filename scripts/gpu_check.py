@@ -42,6 +42,8 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
 
 import torch
 
+from frugalnerf_ns.stepping import run_steps
+
 ROOT = Path(__file__).resolve().parents[1]
 
 PARTS = ("presets", "paper", "speed", "grid_sample", "memory", "tcnn")
@@ -125,11 +127,9 @@ def count_cpu_path_calls() -> Iterator[Dict[str, int]]:
 def build_pipeline(preset: str, data: Path, device: torch.device, dry_run: bool, train_views=None,
                    final_grid: Optional[int] = None):
     """The preset's pipeline on ``data`` (training split), grid upsampled to its final size, plus optimisers."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
-    from nerfstudio.engine.optimizers import Optimizers
-
     from frugalnerf_ns.field import resolution_for_voxels
     from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.stepping import optimizers_and_callbacks
 
     config = build_trainer_config(preset)
     config.pipeline.datamanager.data = data
@@ -147,33 +147,8 @@ def build_pipeline(preset: str, data: Path, device: torch.device, dry_run: bool,
     model = pipeline.model
     box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
     model.field.upsample(resolution_for_voxels(model.final_voxels, box))
-    optimizers = Optimizers(dict(config.optimizers), pipeline.get_param_groups())
-    callbacks = pipeline.get_training_callbacks(
-        TrainingCallbackAttributes(optimizers=optimizers, grad_scaler=None, pipeline=pipeline, trainer=None)
-    )
+    optimizers, callbacks = optimizers_and_callbacks(config, pipeline)
     return config, pipeline, optimizers, callbacks
-
-
-def train_steps(pipeline, optimizers, callbacks, steps: int, device: torch.device, start: int = 0):
-    """Run training steps as nerfstudio's trainer does; (seconds per step, last losses, last outputs)."""
-    from nerfstudio.engine.callbacks import TrainingCallbackLocation
-
-    times, losses, outputs = [], {}, {}
-    for step in range(start, start + steps):
-        begin = time.perf_counter()
-        for callback in callbacks:
-            callback.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        optimizers.zero_grad_all()
-        outputs, losses, _ = pipeline.get_train_loss_dict(step=step)
-        loss = sum(losses.values())
-        loss.backward()  # type: ignore[union-attr]
-        optimizers.optimizer_step_all()
-        optimizers.scheduler_step_all(step)
-        for callback in callbacks:
-            callback.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-        synchronize(device)
-        times.append(time.perf_counter() - begin)
-    return times, losses, outputs
 
 
 def check_preset(preset: str, scene: str, data: Path, device: torch.device, steps: int, dry_run: bool,
@@ -185,7 +160,7 @@ def check_preset(preset: str, scene: str, data: Path, device: torch.device, step
     try:
         with count_cpu_path_calls() as cpu_path:
             _, pipeline, optimizers, callbacks = build_pipeline(preset, data, device, dry_run, train_views)
-            times, losses, outputs = train_steps(pipeline, optimizers, callbacks, steps, device)
+            times, losses, outputs = run_steps(pipeline, optimizers, callbacks, steps)
         model = pipeline.model
         wrong = misplaced(model.named_parameters(), device) + misplaced(model.named_buffers(), device)
         wrong += misplaced(walk("outputs", outputs), device) + misplaced(walk("losses", losses), device)
@@ -327,7 +302,7 @@ def part_memory(args, device: torch.device, scenes) -> List[Dict[str, Any]]:
         try:
             _, pipeline, optimizers, callbacks = build_pipeline("frugalnerf", spec["data"], device, args.dry_run,
                                                                 spec.get("train_views"), final_grid=size)
-            train_steps(pipeline, optimizers, callbacks, 3, device)
+            run_steps(pipeline, optimizers, callbacks, 3)
             row["peak_mib"] = peak_mib(device)
             reserved = torch.cuda.max_memory_reserved(device) / 2**20 if device.type == "cuda" else row["peak_mib"]
             row["reserved_mib"] = reserved

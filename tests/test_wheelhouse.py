@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib.metadata
-import importlib.util
 import json
 import math
 import os
@@ -13,17 +12,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.test_benchmark_config import load_script
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _load_script():
-    spec = importlib.util.spec_from_file_location("wheelhouse_requirements", ROOT / "scripts" / "wheelhouse_requirements.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)  # type: ignore[union-attr]
-    return module
-
-
-wr = _load_script()
+wr = load_script("wheelhouse_requirements")
 
 
 def test_modules_map_to_their_distributions_and_torch_stays_with_the_node():
