@@ -221,3 +221,17 @@ def test_a_two_by_two_grid_completes_with_a_table_per_option_and_seed(local_ray,
         mean = sum(r["psnr"] for r in rows) / 2
         assert f"| proc (3v) | {label} | mean of 2 (spread) | {mean:.2f}" in table
     assert (out / "pareto.png").stat().st_size > 0
+
+
+def test_command_refuses_a_bad_grid_or_missing_data_in_one_line(tmp_path, capsys):
+    from frugalnerf_ns.sweep.cli import main
+
+    assert main([str(tmp_path / "missing.yaml")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("frugalnerf-sweep: ") and "missing.yaml" in err[0]
+    scenes = scenes_file(tmp_path, tmp_path / "absent", own_split=True)
+    grid = grid_file(tmp_path, scenes, scenes=["proc"], views=[3], methods=["frugalnerf-tiny"])
+    assert main([str(grid), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scene data not found" in err[0] and str(tmp_path / "absent") in err[0]
+    assert not (tmp_path / "out").exists()
