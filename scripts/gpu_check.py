@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import gc
 import json
 import math
@@ -93,9 +94,12 @@ def misplaced(tensors: Iterator[tuple], device: torch.device) -> List[str]:
 
 
 def walk(name: str, value: Any) -> Iterator[tuple]:
-    """(dotted name, tensor) for every tensor in nested dicts / lists / dataclass-like objects."""
+    """(dotted name, tensor) for every tensor in nested dicts, lists and dataclasses (a step's StepRender)."""
     if isinstance(value, torch.Tensor):
         yield name, value
+    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+        for item in dataclasses.fields(value):
+            yield from walk(f"{name}.{item.name}", getattr(value, item.name))
     elif isinstance(value, dict):
         for key, item in value.items():
             yield from walk(f"{name}.{key}", item)
@@ -162,8 +166,8 @@ def check_preset(preset: str, scene: str, data: Path, device: torch.device, step
             _, pipeline, optimizers, callbacks = build_pipeline(preset, data, device, dry_run, train_views)
             times, losses, outputs = run_steps(pipeline, optimizers, callbacks, steps)
         model = pipeline.model
-        wrong = misplaced(model.named_parameters(), device) + misplaced(model.named_buffers(), device)
-        wrong += misplaced(walk("outputs", outputs), device) + misplaced(walk("losses", losses), device)
+        tensors = [*model.named_parameters(), *model.named_buffers(), *walk("outputs", outputs), *walk("losses", losses)]
+        wrong = misplaced(iter(tensors), device)
         mlp = model.field.color_mlp.implementation
         expected_mlp = "tcnn" if tcnn_available() else "torch"
         finite = all(math.isfinite(float(v.detach())) for v in losses.values())
@@ -174,6 +178,7 @@ def check_preset(preset: str, scene: str, data: Path, device: torch.device, step
             "s_per_step": statistics.median(times[1:] if len(times) > 1 else times),
             "peak_mib": peak_mib(device),
             "losses_finite": finite,
+            "checked_tensors": len(tensors),
             "misplaced_tensors": wrong[:5],
             "cpu_path_calls_on_gpu": cpu_path_on_gpu,
             "color_mlp": mlp,

@@ -32,8 +32,16 @@ def test_misplaced_names_tensors_on_the_wrong_device_type():
     tensors = [("grid", torch.zeros(2)), ("note", "not a tensor")]
     assert gpu_check.misplaced(iter(tensors), torch.device("cuda")) == ["grid"]
     assert gpu_check.misplaced(iter(tensors), torch.device("cpu")) == []
-    nested = {"rgb": [torch.zeros(1), {"depth": torch.ones(1)}], "n": 3}
-    assert [name for name, _ in gpu_check.walk("out", nested)] == ["out.rgb[0]", "out.rgb[1].depth"]
+    from dataclasses import dataclass
+
+    @dataclass
+    class Render:
+        depth: torch.Tensor
+        scales: list
+
+    nested = {"rgb": [torch.zeros(1), {"depth": torch.ones(1)}], "n": 3, "step": Render(torch.ones(1), [torch.ones(2)])}
+    assert [name for name, _ in gpu_check.walk("out", nested)] == ["out.rgb[0]", "out.rgb[1].depth", "out.step.depth",
+                                                                   "out.step.scales[0]"]
 
 
 def test_cpu_path_counter_sees_the_index_add_backward():
@@ -81,6 +89,8 @@ def test_dry_run_of_the_in_process_parts_writes_table_and_json(tmp_path, capsys)
         row = rows[("presets", preset)]
         assert row["ok"] and row["losses_finite"] and row["cpu_path_calls_on_gpu"] == 0
         assert row["s_per_step"] > 0 and row["peak_mib"] > 0 and row["color_mlp"] == "torch"
+        # parameters, buffers, every scale's render inside the step's StepRender, and the losses
+        assert row["checked_tensors"] > 40 and row["misplaced_tensors"] == []
     sample = next(row for row in summary["rows"] if row["part"] == "grid_sample")
     assert sample["max_grad_difference"] < 1e-3 and sample["used"] == "index_add"
     assert rows[("tcnn", "colour MLP")]["skipped"] == "no CUDA device"
