@@ -406,11 +406,9 @@ def machine_description(device: torch.device) -> Dict[str, Any]:
         info.update({"gpu": props.name, "gpu_memory_gib": props.total_memory / 2**30, "cuda": torch.version.cuda})
     else:
         info["cpu"] = platform.processor() or platform.machine()
-    try:
-        info["commit"] = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                        cwd=ROOT).stdout.strip()
-    except OSError:
-        pass
+    from frugalnerf_ns.sweep.runner import git_commit
+
+    info["commit"] = git_commit()
     return info
 
 
