@@ -90,6 +90,8 @@ class FrugalNeRFModel(Model):
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
         self.scale_history = ScaleFractionHistory()
+        # Progress lines of a video render (frames, fps, ETA), set by the ns-render hook in video.py.
+        self.frame_progress = None
         # Factor of the decaying loss weights (losses.loss_weight_schedule), set before every training step.
         self.loss_schedule_factor = 1.0
         # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
@@ -253,12 +255,26 @@ class FrugalNeRFModel(Model):
             outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
         return outputs
 
+    def get_outputs_for_camera(self, camera, obb_box=None) -> Dict[str, Tensor]:
+        outputs = super().get_outputs_for_camera(camera, obb_box=obb_box)
+        if self.frame_progress is not None:  # a video being rendered (video.teach_ns_render_spiral)
+            self.frame_progress.tick()
+        return outputs
+
     def _scales_to_render(self) -> int:
+        """Training renders every scale (every loss needs them). Outside it: what a tool asked for
+        (``num_rendered_scales``); in the viewer, its "Render lower scales" checkbox; the pseudo-GT scale map
+        needs every scale; anything else (ns-eval, ns-render, evaluation during training) renders the full
+        scale only unless ``eval_all_scales``: the metrics and videos read nothing else."""
         if self.training:
             return self.field.num_scales
         if self.num_rendered_scales is not None:
             return min(self.field.num_scales, self.num_rendered_scales)
-        return self.field.num_scales if self.viewer_lower_scales.value else 1
+        if self.viewer_lower_scales.gui_handle is not None:
+            return self.field.num_scales if self.viewer_lower_scales.value else 1
+        if self.render_scale_map or self.config.eval_all_scales:
+            return self.field.num_scales
+        return 1
 
     # ---- losses and metrics -----------------------------------------------------------------------------
     def get_metrics_dict(self, outputs, batch: Union[TrainBatch, EvalBatch]) -> Dict[str, Tensor]:
@@ -339,6 +355,8 @@ class FrugalNeRFModel(Model):
         images = {"img": torch.cat([image, rgb], dim=1)}
         for scale in range(self.field.num_scales):
             suffix = scale_suffix(scale)
+            if f"rgb{suffix}" not in outputs:  # lower scales are rendered on request only (eval_all_scales)
+                break
             if scale > 0:
                 pred = outputs[f"rgb{suffix}"].clamp(0, 1)
                 metrics[f"psnr{suffix}"] = (

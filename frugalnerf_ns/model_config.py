@@ -77,6 +77,11 @@ class FrugalNeRFModelConfig(ModelConfig):
     """Positional-encoding frequencies of the viewing direction (0: none)."""
     mlp_implementation: MLPImplementation = "auto"
     """auto: tinycudann when importable with CUDA, torch otherwise."""
+    eval_all_scales: bool = False
+    """Outside training and the viewer (ns-eval, evaluation during training, ns-render), render every scale and
+    score the lower ones too (per-scale PSNR, depth and accumulation images). Off: only the full scale, the one
+    the metrics and videos use (~2.5x faster on a CPU). For a trained run, set ``eval_all_scales: true`` in its
+    config.yml."""
     background: Background = "random_white"
     """Training background: white or black at random per batch (reference code), or fixed."""
     full_scale_color_weight: float = 1.0

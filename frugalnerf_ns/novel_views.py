@@ -24,11 +24,13 @@ def spiral_poses(
     rotations: float,
     radius_scale: float,
     zrate: float,
+    min_radius_ratio: float = 0.0,
 ) -> Float[Tensor, "num_poses 3 4"]:
     """TensoRF's spiral around the training cameras (supp. "Novel pose sampling"): positions circle the
     average camera with radii the 90th percentile of the cameras' offsets from it (times ``radius_scale``)
     per axis, moving in depth at ``zrate`` times the angular speed, and every pose looks at the point
-    ``focus_depth`` in front of the average camera, with the average camera's up."""
+    ``focus_depth`` in front of the average camera, with the average camera's up. ``min_radius_ratio`` raises
+    every radius to at least that fraction of the largest (0: the paper's spiral)."""
     if num_poses < 1:
         raise ValueError(f"num_poses must be >= 1, got {num_poses}")
     poses = camera_to_worlds.detach().cpu().double()
@@ -36,6 +38,7 @@ def spiral_poses(
     rotation, centre = mean[:, :3], mean[:, 3]
     offsets = (poses[:, :, 3] - centre) @ rotation  # each camera's centre in the average camera's frame
     radii = torch.quantile(offsets.abs(), 0.9, dim=0) * radius_scale
+    radii = radii.clamp(min=float(radii.max()) * min_radius_ratio)
     lookat = centre - rotation[:, 2] * focus_depth
     angles = torch.linspace(0.0, 2.0 * math.pi * rotations, num_poses + 1, dtype=torch.float64)[:-1]
     local = torch.stack([angles.cos(), -angles.sin(), -(angles * zrate).sin()], dim=-1) * radii

@@ -16,6 +16,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from frugalnerf_ns.checkpoints import use_intact_checkpoints_in_eval_tools
 from frugalnerf_ns.errors import one_line_errors
+from frugalnerf_ns.video import teach_ns_render_spiral
 
 
 @dataclass
@@ -31,6 +32,7 @@ class FrugalPipeline(VanillaPipeline):
         with one_line_errors():
             super().__init__(config, device, *args, **kwargs)
         use_intact_checkpoints_in_eval_tools()
+        teach_ns_render_spiral(self)
         images = getattr(self.datamanager, "warp_images", None)
         set_views = getattr(self.model, "set_reference_views", None)
         if images is not None and set_views is not None:

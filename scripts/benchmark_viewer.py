@@ -56,6 +56,8 @@ def benchmark_run(config: Path, max_res: int, repeats: int) -> List[Dict]:
     rows = []
     for mode, (lower_scales, scale_map) in MODES.items():
         model.viewer_lower_scales.value, model.render_scale_map = lower_scales, scale_map
+        # What the viewer's checkbox gives (no viewer is attached here, so say it outright).
+        model.num_rendered_scales = model.field.num_scales if lower_scales else 1
         still = camera_of_height(int(min(max_res, max_res / aspect)))
         seconds = frame_seconds(model, still, repeats)
         rays_per_second = int(still.height) * int(still.width) / seconds

@@ -31,6 +31,10 @@ def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tenso
 
     camera = dataset.cameras[index : index + 1].to(model.device)
     bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
+    # Every scale (outside the viewer the model renders only the full scale unless asked).
+    num_scales = getattr(getattr(model, "field", None), "num_scales", 1)
+    if hasattr(model, "num_rendered_scales"):
+        model.num_rendered_scales = num_scales
     with torch.no_grad():
         outputs = model.get_outputs_for_camera_ray_bundle(bundle)
     image = dataset[index]["image"][..., :3].float()
@@ -38,7 +42,6 @@ def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tenso
     pictures = [(image.numpy() * 255).astype(np.uint8)]
     depths = []
     # nerfstudio's own methods (tensorf) render one scale with the same output names.
-    num_scales = getattr(getattr(model, "field", None), "num_scales", 1)
     for scale in range(num_scales):
         suffix = "" if scale == 0 else f"_scale{scale}"
         rgb = outputs[f"rgb{suffix}"].clamp(0, 1).cpu()

@@ -2,8 +2,10 @@
 
   python scripts/render_spiral.py outputs/<scene>/frugalnerf/<timestamp>/config.yml [--seconds 4] [--depth]
 
-Runs nerfstudio's own ``ns-render spiral`` (so the result is what ns-render gives) and writes
-``<run>/renders/spiral.mp4`` (``spiral-depth.mp4`` with --depth) unless --output says otherwise.
+Runs nerfstudio's own ``ns-render spiral`` (so the result is what ns-render gives: for a FrugalNeRF run the
+scene's spiral or orbit around the training cameras, full scale only, with progress lines; see
+``frugalnerf_ns/video.py``) and writes ``<run>/renders/spiral.mp4`` (``spiral-depth.mp4`` with --depth) unless
+--output says otherwise.
 """
 
 from __future__ import annotations
@@ -19,7 +21,6 @@ def main(argv=None) -> Path:
     parser.add_argument("--output", type=Path, default=None, help="video file (default: <run>/renders/spiral.mp4)")
     parser.add_argument("--seconds", type=float, default=4.0, help="video length")
     parser.add_argument("--frame-rate", type=int, default=24)
-    parser.add_argument("--radius", type=float, default=0.1, help="spiral radius in scene units")
     parser.add_argument("--downscale-factor", type=float, default=1.0, help="render at 1/N of the camera size")
     parser.add_argument("--depth", action="store_true", help="render the depth map instead of rgb")
     args = parser.parse_args(argv)
@@ -35,7 +36,7 @@ def main(argv=None) -> Path:
     output.parent.mkdir(parents=True, exist_ok=True)
     SpiralRender(
         load_config=args.config, output_path=output, seconds=args.seconds, frame_rate=args.frame_rate,
-        radius=args.radius, downscale_factor=args.downscale_factor,
+        downscale_factor=args.downscale_factor,
         rendered_output_names=["depth" if args.depth else "rgb"],
     ).main()
     print(f"render_spiral: wrote {output.resolve()}")

@@ -67,7 +67,7 @@ def ray_bundle(n=64):
 
 
 def test_outputs_per_scale_with_viewer_friendly_names():
-    model = tiny_model()
+    model = tiny_model(eval_all_scales=True)
     model.eval()
     outputs = model.get_outputs(ray_bundle(32))
     for scale in range(3):
@@ -199,7 +199,7 @@ def test_image_metrics_include_psnr_ssim_lpips_and_per_scale_images():
 
 def test_ndc_scenes_render_in_ndc_and_report_metric_depth():
     ndc = {"focal": 40.0, "width": 40.0, "height": 30.0, "near": 1.0}
-    model = tiny_model(metadata={"ndc": ndc}, aabb=((-1.5, -1.67, -1.0), (1.5, 1.67, 1.0)))
+    model = tiny_model(metadata={"ndc": ndc}, aabb=((-1.5, -1.67, -1.0), (1.5, 1.67, 1.0)), eval_all_scales=True)
     model.eval()
     n = 16
     origins = torch.zeros(n, 3)
@@ -315,7 +315,7 @@ def test_model_builds_and_scores_without_the_lpips_weights(monkeypatch, capsys):
 def test_a_perfect_fit_logs_a_capped_psnr():
     from frugalnerf_ns.metrics import PSNR_CAP_DB
 
-    model = tiny_model()
+    model = tiny_model(eval_all_scales=True)
     model.eval()
     outputs = {k: v.reshape(48, 64, -1) for k, v in model.get_outputs(ray_bundle(64 * 48)).items()}
     perfect = outputs["rgb"].clamp(0, 1).clone()
@@ -330,7 +330,7 @@ def test_a_perfect_fit_logs_a_capped_psnr():
 
 def test_eval_batches_score_on_the_fixed_background_with_the_rendered_scales():
     """nerfstudio's eval-loss path: the model in eval mode, a batch of single pixels, no training context."""
-    model = tiny_model(background="random_white")
+    model = tiny_model(background="random_white", eval_all_scales=True)
     model.eval()
     outputs = model.get_outputs(ray_bundle(40))
     rgba = torch.cat([torch.rand(40, 3), torch.zeros(40, 1)], dim=-1)  # fully transparent: target = background

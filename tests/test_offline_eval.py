@@ -32,16 +32,20 @@ def test_masked_render_equals_full_render_inside_the_mask_and_black_outside():
     assert (render_test_rgb(model, camera, torch.zeros_like(mask)) == 0).all()
 
 
-def test_full_scale_only_renders_the_same_rgb_without_lower_scales():
+def test_outside_training_only_the_full_scale_is_rendered_unless_asked():
     model = tiny_model()
     model.eval()
     bundle = small_camera().generate_rays(camera_indices=0)
     with torch.no_grad():
+        default = model.get_outputs_for_camera_ray_bundle(bundle)  # ns-eval, ns-render, eval in training
+        model.config.eval_all_scales = True
         everything = model.get_outputs_for_camera_ray_bundle(bundle)
-        with model.full_scale_only():
+        with model.full_scale_only():  # the offline evaluator's block wins over the option
             only_full = model.get_outputs_for_camera_ray_bundle(bundle)
+    assert sorted(default) == ["accumulation", "depth", "rgb"]
     assert "rgb_scale1" in everything and "rgb_scale1" not in only_full
     assert torch.allclose(only_full["rgb"], everything["rgb"], atol=1e-6)
+    assert torch.allclose(default["rgb"], everything["rgb"], atol=1e-6)
     assert model.num_rendered_scales is None  # restored after the block
 
 

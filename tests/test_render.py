@@ -46,8 +46,10 @@ def test_spiral_and_interpolate_videos_without_a_system_ffmpeg(trained_run, proc
     config = run_dir / "config.yml"
     width, height = camera_size(procedural_scene)
     spiral = tmp_path / "spiral.mp4"
-    run([BIN / "ns-render", "spiral", "--load-config", config, "--output-path", spiral, "--seconds", "1", "--frame-rate", "6"])
+    result = run([BIN / "ns-render", "spiral", "--load-config", config, "--output-path", spiral, "--seconds", "1", "--frame-rate", "6"])
     assert video_frames(spiral) == (6, width, height)
+    # The real ns-render used the scene's path (video.py) and printed progress lines.
+    assert "frugalnerf render: spiral of 6 frames" in result.stdout and "frame 6/6" in result.stdout, result.stdout[-2000:]
     depth = tmp_path / "interp-depth.mp4"
     run([
         BIN / "ns-render", "interpolate", "--load-config", config, "--output-path", depth, "--interpolation-steps", "4",

@@ -1,0 +1,111 @@
+"""Videos of a trained run: the scene's camera path as nerfstudio Cameras, ``ns-render spiral`` taught to use
+it, and progress lines that read well in a log file.
+
+``ns-render spiral`` builds its path with nerfstudio's ``get_spiral_path`` from the first test camera, with
+that camera's z axis as "up" (rolled frames on forward-facing scenes) and a fixed radius in scene units; it
+offers no hook for a method's own path. As with checkpoint loading (``checkpoints.py``), FrugalPipeline
+replaces the function in ``nerfstudio.scripts.render`` when that module is running, and only for FrugalNeRF
+pipelines; every other method keeps nerfstudio's path.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+import weakref
+from typing import Callable, Optional
+
+from nerfstudio.cameras.cameras import Cameras
+
+from frugalnerf_ns.novel_views import spiral_focus_depth
+from frugalnerf_ns.video_path import video_poses
+
+
+def format_duration(seconds: float) -> str:
+    seconds = max(0, int(round(seconds)))
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+
+
+class FrameProgress:
+    """One line per ``every_seconds`` (and the first and last frame): frames done, fps, ETA. Plain lines,
+    flushed, so a log file shows progress while rendering (a progress bar shows only when it finishes)."""
+
+    def __init__(self, total: int, label: str = "frugalnerf render", every_seconds: float = 10.0,
+                 write: Callable[[str], None] = print, clock: Callable[[], float] = time.monotonic) -> None:
+        self.total, self.label, self.every, self.write, self.clock = total, label, every_seconds, write, clock
+        self.done = 0
+        self.start = clock()
+        self.last_line: Optional[float] = None
+
+    def line(self) -> str:
+        elapsed = max(self.clock() - self.start, 1e-9)
+        fps = self.done / elapsed
+        eta = (self.total - self.done) / fps if fps > 0 else float("inf")
+        eta_text = format_duration(eta) if eta != float("inf") else "?"
+        return (f"{self.label}: frame {self.done}/{self.total}, {fps:.2f} fps ({elapsed / max(self.done, 1):.1f} s/frame), "
+                f"elapsed {format_duration(elapsed)}, ETA {eta_text}")
+
+    def tick(self) -> None:
+        self.done += 1
+        now = self.clock()
+        if self.done in (1, self.total) or self.last_line is None or now - self.last_line >= self.every:
+            self.last_line = now
+            self.write(self.line())
+            sys.stdout.flush()
+
+
+def scene_video_cameras(datamanager, intrinsics: Cameras, num_frames: int, radius_scale: float = 1.0,
+                        rotations: float = 1.0) -> Cameras:
+    """The scene's video path (``video_path.video_poses``) from a FrugalDataManager's training cameras and
+    scene analysis, with the intrinsics (and image size) of the camera ``intrinsics``."""
+    cameras = datamanager.train_dataset.cameras
+    c2w = cameras.camera_to_worlds
+    layout = datamanager.scene_layout
+    metadata = datamanager.train_dataparser_outputs.metadata or {}
+    scene_type = datamanager.scene_type
+    focus_depth = focus = None
+    if scene_type == "forward-facing":
+        focus_depth = spiral_focus_depth(
+            c2w, near_far=metadata.get("near_far"), scene_center=datamanager.train_dataparser_outputs.scene_box.get_center()
+        )
+    else:
+        focus = layout.focus
+    poses = video_poses(
+        c2w, scene_type, num_frames, focus_depth=focus_depth, focus=focus, coverage_degrees=layout.coverage_degrees,
+        radius_scale=radius_scale, rotations=rotations,
+    ).float()
+    one = intrinsics.reshape(-1)[:1].to("cpu")
+    n = poses.shape[0]
+    return Cameras(
+        camera_to_worlds=poses, fx=one.fx.expand(n, 1), fy=one.fy.expand(n, 1), cx=one.cx.expand(n, 1),
+        cy=one.cy.expand(n, 1), width=one.width.expand(n, 1), height=one.height.expand(n, 1),
+        camera_type=one.camera_type.expand(n, 1),
+        distortion_params=None if one.distortion_params is None else one.distortion_params.expand(n, -1),
+    )
+
+
+def teach_ns_render_spiral(pipeline) -> bool:
+    """Inside ``ns-render`` (its module is loaded), make ``spiral`` use the scene's path for this pipeline and
+    report progress per frame. Returns whether ns-render is running."""
+    render = sys.modules.get("nerfstudio.scripts.render")
+    if render is None or not hasattr(render, "get_spiral_path"):
+        return False
+    original = getattr(render.get_spiral_path, "nerfstudio_original", render.get_spiral_path)
+    owner = weakref.ref(pipeline)
+
+    def get_spiral_path(camera: Cameras, steps: int = 30, radius: Optional[float] = None, **kwargs) -> Cameras:
+        active = owner()
+        if active is None:
+            return original(camera, steps=steps, radius=radius, **kwargs)
+        print(
+            f"frugalnerf render: spiral of {steps} frames fitted to the training cameras ({active.datamanager.scene_type} "
+            "scene: the LLFF spiral for forward-facing scenes, an orbit around the focus for objects); ns-render's "
+            "--radius is not used; only the full scale is rendered"
+        )
+        active.model.frame_progress = FrameProgress(steps)
+        return scene_video_cameras(active.datamanager, camera, steps).to(camera.device)
+
+    get_spiral_path.nerfstudio_original = original  # type: ignore[attr-defined]
+    render.get_spiral_path = get_spiral_path
+    return True
+
