@@ -67,3 +67,19 @@ def test_ns_render_spiral_renders_the_scene_path_upright_at_full_scale(trained_r
     print(f"frame 0 vs the nearest training camera: ours {ours:.1f} dB, nerfstudio spiral {theirs:.1f} dB")
     assert ours > 30.0, (ours, theirs)
     assert theirs < 30.0, (ours, theirs)
+
+
+def test_render_benchmark_times_every_row_on_one_run(trained_run, tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    _, run_dir = trained_run
+    out = tmp_path / "render.json"
+    script = Path(__file__).resolve().parents[1] / "scripts" / "benchmark_render.py"
+    result = subprocess.run([sys.executable, str(script), str(run_dir / "config.yml"), "--frames", "2", "--views", "1",
+                             "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    records = json.loads(out.read_text())
+    assert [r["row"].split(",")[0] for r in records] == ["spiral frame"] * 2 + ["ns-eval per test view"] * 2 + ["offline evaluator per test view"]
+    assert all(r["seconds"] > 0 for r in records) and "| spiral frame, now" in result.stdout

@@ -1,0 +1,112 @@
+"""Render time of a trained FrugalNeRF run before and after issue 23, side by side in one process.
+
+  python scripts/benchmark_render.py <run>/config.yml [--frames 4] [--views 3] [--out outputs/benchmark_render.json]
+
+Rows (seconds per frame or per test view, same machine, same model, same image size):
+- spiral frame, before: nerfstudio's ``get_spiral_path`` from the first test camera, every scale rendered
+  (what ``ns-render spiral`` did: outside the viewer the model rendered all scales);
+- spiral frame, now: the scene's path (``video.scene_video_cameras``), full scale only (the default);
+- ns-eval per view, before / now: nerfstudio's ``get_average_eval_image_metrics`` (what ``ns-eval`` runs) with
+  every scale, then with the default (full scale only);
+- offline evaluator per view: ``offline_tools.render_test_rgb`` + the same metrics.
+Prints a Markdown table and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def timed(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def main(argv=None) -> list:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("config", type=Path, help="config.yml of a trained FrugalNeRF run")
+    parser.add_argument("--frames", type=int, default=4, help="spiral frames timed per row")
+    parser.add_argument("--views", type=int, default=3, help="test views timed per evaluation row (at most all)")
+    parser.add_argument("--out", type=Path, default=Path("outputs/benchmark_render.json"))
+    args = parser.parse_args(argv)
+    if not args.config.is_file():
+        sys.exit(f"benchmark_render: error: {args.config} is not a file (pass <run>/config.yml)")
+
+    import torch
+    from nerfstudio.cameras.camera_paths import get_spiral_path
+    from nerfstudio.utils.eval_utils import eval_setup
+    from torchmetrics.functional import structural_similarity_index_measure as ssim
+
+    from frugalnerf_ns.dataset import read_eval_mask
+    from frugalnerf_ns.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.metrics import masked_image_metrics
+    from frugalnerf_ns.offline_tools import render_test_rgb
+    from frugalnerf_ns.video import scene_video_cameras
+
+    _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
+    pipeline.eval()
+    model, datamanager = pipeline.model, pipeline.datamanager
+    every_scale = model.field.num_scales
+    start = datamanager.eval_dataset.cameras[0:1]
+    size = f"{int(start.width)}x{int(start.height)}"
+    dataset = datamanager.eval_dataset
+    views = list(range(min(args.views, len(dataset))))
+
+    def render_path(cameras, scales):
+        model.num_rendered_scales = scales
+        with torch.no_grad():
+            for i in range(len(cameras)):
+                model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))
+
+    def ns_eval(scales):
+        model.num_rendered_scales = scales
+        # get_average_eval_image_metrics scores the whole eval set; time a subset through the same calls.
+        with torch.no_grad():
+            for index in views:
+                camera = dataset.cameras[index : index + 1].to(model.device)
+                outputs = model.get_outputs_for_camera(camera)
+                batch = dataset[index]
+                model.get_image_metrics_and_images(outputs, batch)
+
+    lpips = OfflineLPIPS().to(pipeline.device)
+
+    def offline():
+        for index in views:
+            camera = dataset.cameras[index : index + 1].to(pipeline.device)
+            data = dataset[index]
+            image = data["image"][..., :3].to(pipeline.device)
+            mask = data["eval_mask"] if "eval_mask" in data else read_eval_mask(dataset, index)
+            rgb = render_test_rgb(model, camera, mask)
+            if mask is None:
+                mask = torch.ones(*image.shape[:2], 1, dtype=torch.bool)
+            masked_image_metrics(rgb, image, mask.to(rgb.device), ssim, lpips)
+
+    theirs = get_spiral_path(start, steps=args.frames, radius=0.1)
+    ours = scene_video_cameras(datamanager, start, args.frames)
+    ns_eval(None)  # warm-up: LPIPS weights, first-call allocations
+    rows = [
+        ("spiral frame, before (nerfstudio path, every scale)", timed(lambda: render_path(theirs, every_scale)) / args.frames),
+        ("spiral frame, now (scene path, full scale)", timed(lambda: render_path(ours, None)) / args.frames),
+        ("ns-eval per test view, before (every scale)", timed(lambda: ns_eval(every_scale)) / len(views)),
+        ("ns-eval per test view, now (full scale)", timed(lambda: ns_eval(None)) / len(views)),
+        ("offline evaluator per test view", timed(offline) / len(views)),
+    ]
+    model.num_rendered_scales = None
+    records = [{"run": str(args.config.parent), "row": name, "seconds": seconds, "image": size,
+                "threads": torch.get_num_threads(), "device": str(pipeline.device)} for name, seconds in rows]
+    print(f"| {args.config.parent} ({size}, {torch.get_num_threads()} threads) | seconds |\n|---|---|")
+    for name, seconds in rows:
+        print(f"| {name} | {seconds:.2f} |")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(records, indent=2))
+    print(f"benchmark_render: wrote {args.out}")
+    return records
+
+
+if __name__ == "__main__":
+    main()
