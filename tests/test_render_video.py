@@ -1,6 +1,7 @@
 """`ns-render spiral` on a trained FrugalNeRF run: the scene's own path (video.py), full scale only, progress
 lines, and frame 0 showing what the nearest training camera shows."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -25,10 +26,14 @@ def test_frame_progress_lines_read_well_in_a_log():
     assert format_duration(3725) == "1h02m"
 
 
-def test_ns_render_spiral_renders_the_scene_path_upright_at_full_scale(trained_run, tmp_path, capsys):
+def test_ns_render_spiral_renders_the_scene_path_upright_at_full_scale(trained_run, tmp_path, capsys, monkeypatch):
     from nerfstudio.scripts import render  # imported as ns-render does: FrugalPipeline then teaches it
     from nerfstudio.utils.eval_utils import eval_setup
 
+    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
+
+    monkeypatch.setenv("PATH", os.environ.get("PATH", ""))  # restored after the test
+    provide_ffmpeg()  # what the ns-render command gets from the plugin (ns-render checks for ffmpeg first)
     _, run_dir = trained_run
     frames_dir = tmp_path / "spiral"
     render.SpiralRender(
