@@ -50,6 +50,7 @@ from frugalnerf_ns.sparse_points import (
     save_sparse_depth,
     triangulate_training_views,
 )
+from frugalnerf_ns.video import cameras_at
 
 
 @dataclass
@@ -292,23 +293,21 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         bundle = cameras.generate_rays(camera_indices=view[:, None], coords=coords)
         return bundle, self.sparse.depth[chosen]
 
+    def spiral_focus_depth(self) -> float:
+        """Depth in front of the average training camera that the spiral looks at (novel rays, videos)."""
+        metadata = self.train_dataparser_outputs.metadata or {}
+        return spiral_focus_depth(
+            self.train_dataset.cameras.camera_to_worlds, near_far=metadata.get("near_far"),
+            scene_center=self.train_dataparser_outputs.scene_box.get_center(),
+        )
+
     def _spiral_cameras(self, cameras: Cameras) -> Cameras:
         """The spiral's poses with the first training camera's intrinsics."""
-        metadata = self.train_dataparser_outputs.metadata or {}
-        focus = spiral_focus_depth(
-            cameras.camera_to_worlds, near_far=metadata.get("near_far"), scene_center=self.train_dataparser_outputs.scene_box.get_center()
-        )
         poses = spiral_poses(
-            cameras.camera_to_worlds, focus, self.config.num_novel_poses, self.config.spiral_rotations,
-            self.config.spiral_radius_scale, self.config.spiral_zrate,
+            cameras.camera_to_worlds, self.spiral_focus_depth(), self.config.num_novel_poses,
+            self.config.spiral_rotations, self.config.spiral_radius_scale, self.config.spiral_zrate,
         )
-        count = poses.shape[0]
-        return Cameras(
-            camera_to_worlds=poses, fx=cameras.fx[:1].expand(count, 1), fy=cameras.fy[:1].expand(count, 1),
-            cx=cameras.cx[:1].expand(count, 1), cy=cameras.cy[:1].expand(count, 1),
-            width=cameras.width[:1].expand(count, 1), height=cameras.height[:1].expand(count, 1),
-            camera_type=cameras.camera_type[:1].expand(count, 1),
-        )
+        return cameras_at(poses, cameras)
 
     def _sample_patches(self, num_patches: int, num_views: int, height: int, width: int, k: int) -> Int[Tensor, "rays 3"]:
         """(view, row, col) of ``num_patches`` random k x k patches, patch-major, row-major inside a patch.

@@ -80,7 +80,7 @@ class FrugalNeRFModelConfig(ModelConfig):
     eval_all_scales: bool = False
     """Outside training and the viewer (ns-eval, evaluation during training, ns-render), render every scale and
     score the lower ones too (per-scale PSNR, depth and accumulation images). Off: only the full scale, the one
-    the metrics and videos use (~2.5x faster on a CPU). For a trained run, set ``eval_all_scales: true`` in its
+    the metrics and videos use (1.3x faster on fern, docs/video.md). For a trained run, set ``eval_all_scales: true`` in its
     config.yml."""
     background: Background = "random_white"
     """Training background: white or black at random per batch (reference code), or fixed."""

@@ -63,15 +63,31 @@ def render_test_rgb(model, camera, mask: Optional[torch.Tensor]) -> torch.Tensor
         return rgb
 
 
+def score_test_view(pipeline, dataset, index: int, lpips) -> Dict[str, float]:
+    """PSNR / SSIM / LPIPS of one test view, masked where the dataparser gives an eval mask."""
+    from torchmetrics.functional import structural_similarity_index_measure as ssim
+
+    from frugalnerf_ns.dataset import read_eval_mask
+    from frugalnerf_ns.metrics import masked_image_metrics
+
+    camera = dataset.cameras[index : index + 1].to(pipeline.device)
+    data = dataset[index]
+    image = data["image"][..., :3].to(pipeline.device)
+    # The eval mask where the dataparser lists one, also for nerfstudio's datasets (tensorf's), which
+    # do not load it: every method is scored on the same pixels.
+    mask = data["eval_mask"] if "eval_mask" in data else read_eval_mask(dataset, index)
+    rgb = render_test_rgb(pipeline.model, camera, mask)
+    if mask is None:
+        mask = torch.ones(*image.shape[:2], 1, dtype=torch.bool)
+    return masked_image_metrics(rgb, image, mask.to(rgb.device), ssim, lpips)
+
+
 def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, float]:
     """Test-view PSNR / SSIM / LPIPS of a trained run (masked where the dataparser gives eval masks), at its
     latest checkpoint or at the checkpoint of ``step``."""
     from nerfstudio.utils.eval_utils import eval_setup
-    from torchmetrics.functional import structural_similarity_index_measure as ssim
 
-    from frugalnerf_ns.dataset import read_eval_mask
     from frugalnerf_ns.lpips_offline import OfflineLPIPS
-    from frugalnerf_ns.metrics import masked_image_metrics
 
     patch_torchmetrics_lpips()
     def at_step(config):
@@ -84,16 +100,7 @@ def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, flo
     per_view: List[Dict[str, float]] = []
     pipeline.eval()
     for index in range(len(dataset)):
-        camera = dataset.cameras[index : index + 1].to(pipeline.device)
-        data = dataset[index]
-        image = data["image"][..., :3].to(pipeline.device)
-        # The eval mask where the dataparser lists one, also for nerfstudio's datasets (tensorf's), which
-        # do not load it: every method is scored on the same pixels.
-        mask = data["eval_mask"] if "eval_mask" in data else read_eval_mask(dataset, index)
-        rgb = render_test_rgb(pipeline.model, camera, mask)
-        if mask is None:
-            mask = torch.ones(*image.shape[:2], 1, dtype=torch.bool)
-        per_view.append(masked_image_metrics(rgb, image, mask.to(rgb.device), ssim, lpips))
+        per_view.append(score_test_view(pipeline, dataset, index, lpips))
     result: Dict[str, float] = mean_scores(per_view) | {"num_test_views": len(dataset)}
     # Published shorter test lists (DTU: RegNeRF's 25 of the 40 views) scored beside the full list.
     for name, positions in (dataset.metadata.get("test_subsets") or {}).items():

@@ -17,7 +17,6 @@ from typing import Callable, Optional
 
 from nerfstudio.cameras.cameras import Cameras
 
-from frugalnerf_ns.novel_views import spiral_focus_depth
 from frugalnerf_ns.video_path import video_poses
 
 
@@ -54,34 +53,30 @@ class FrameProgress:
             sys.stdout.flush()
 
 
-def scene_video_cameras(datamanager, intrinsics: Cameras, num_frames: int, radius_scale: float = 1.0,
-                        rotations: float = 1.0) -> Cameras:
-    """The scene's video path (``video_path.video_poses``) from a FrugalDataManager's training cameras and
-    scene analysis, with the intrinsics (and image size) of the camera ``intrinsics``."""
-    cameras = datamanager.train_dataset.cameras
-    c2w = cameras.camera_to_worlds
-    layout = datamanager.scene_layout
-    metadata = datamanager.train_dataparser_outputs.metadata or {}
-    scene_type = datamanager.scene_type
-    focus_depth = focus = None
-    if scene_type == "forward-facing":
-        focus_depth = spiral_focus_depth(
-            c2w, near_far=metadata.get("near_far"), scene_center=datamanager.train_dataparser_outputs.scene_box.get_center()
-        )
-    else:
-        focus = layout.focus
-    poses = video_poses(
-        c2w, scene_type, num_frames, focus_depth=focus_depth, focus=focus, coverage_degrees=layout.coverage_degrees,
-        radius_scale=radius_scale, rotations=rotations,
-    ).float()
-    one = intrinsics.reshape(-1)[:1].to("cpu")
+def cameras_at(poses: Float[Tensor, "n 3 4"], camera) -> Cameras:
+    """nerfstudio Cameras at ``poses`` with the pinhole intrinsics and image size of the first camera of
+    ``camera`` (novel-view rays, videos)."""
+    one = camera.reshape(-1)[:1].to("cpu")
     n = poses.shape[0]
     return Cameras(
         camera_to_worlds=poses, fx=one.fx.expand(n, 1), fy=one.fy.expand(n, 1), cx=one.cx.expand(n, 1),
         cy=one.cy.expand(n, 1), width=one.width.expand(n, 1), height=one.height.expand(n, 1),
         camera_type=one.camera_type.expand(n, 1),
-        distortion_params=None if one.distortion_params is None else one.distortion_params.expand(n, -1),
     )
+
+
+def scene_video_cameras(datamanager, intrinsics: Cameras, num_frames: int, radius_scale: float = 1.0,
+                        rotations: float = 1.0) -> Cameras:
+    """The scene's video path (``video_path.video_poses``) from a FrugalDataManager's training cameras and
+    scene analysis, with the intrinsics (and image size) of the camera ``intrinsics``."""
+    layout, scene_type = datamanager.scene_layout, datamanager.scene_type
+    forward = scene_type == "forward-facing"
+    poses = video_poses(
+        datamanager.train_dataset.cameras.camera_to_worlds, scene_type, num_frames,
+        focus_depth=datamanager.spiral_focus_depth() if forward else None, focus=None if forward else layout.focus,
+        coverage_degrees=layout.coverage_degrees, radius_scale=radius_scale, rotations=rotations,
+    ).float()
+    return cameras_at(poses, intrinsics)
 
 
 def teach_ns_render_spiral(pipeline) -> bool:

@@ -21,6 +21,9 @@ from frugalnerf_ns.novel_views import spiral_poses
 # rather than a full circle: the far side of an object two views saw is unconstrained, and a video of it
 # would show nothing the data supports.
 FULL_ORBIT_MIN_COVERAGE = 180.0
+# Each spiral radius is raised to at least this fraction of the largest: two training views side by side have
+# no vertical spread, and the spiral would collapse onto a line.
+MIN_RADIUS_RATIO = 0.5
 
 
 def world_up(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Float[Tensor, "3"]:
@@ -97,23 +100,6 @@ def orbit_poses(
     return look_at_poses(positions, center, up).to(camera_to_worlds)
 
 
-def forward_facing_video_poses(
-    camera_to_worlds: Float[Tensor, "views 3 4"],
-    focus_depth: float,
-    num_poses: int,
-    rotations: float = 1.0,
-    radius_scale: float = 1.0,
-    zrate: float = 0.5,
-    min_radius_ratio: float = 0.5,
-) -> Float[Tensor, "num_poses 3 4"]:
-    """The LLFF / TensoRF spiral of ``novel_views.spiral_poses`` (the novel-view rays' path), with each
-    radius at least ``min_radius_ratio`` of the largest: two training views side by side have no vertical
-    spread, and the spiral would collapse onto a line."""
-    return spiral_poses(
-        camera_to_worlds, focus_depth, num_poses, rotations, radius_scale, zrate, min_radius_ratio=min_radius_ratio
-    )
-
-
 def roll_degrees(camera_to_worlds: Float[Tensor, "n 3 4"], up: Float[Tensor, "3"]) -> Float[Tensor, "n"]:
     """Roll of each camera against ``up``: the angle between its x axis and the plane perpendicular to up
     (0 for an upright camera), in degrees. A camera looking straight along ``up`` has no defined roll."""
@@ -132,13 +118,15 @@ def video_poses(
     radius_scale: float = 1.0,
     rotations: float = 1.0,
 ) -> Float[Tensor, "num_poses 3 4"]:
-    """The video path a scene needs: forward-facing scenes the spiral around the training cameras looking at
-    ``focus_depth`` in front of them; object and 360 scenes an orbit around ``focus`` (a full circle when
+    """The video path a scene needs: forward-facing scenes the LLFF / TensoRF spiral of
+    ``novel_views.spiral_poses`` (the novel-view rays' path) looking at ``focus_depth`` in front of them; object and 360 scenes an orbit around ``focus`` (a full circle when
     the training cameras cover at least ``FULL_ORBIT_MIN_COVERAGE`` degrees or the scene is 360)."""
     if scene_type == "forward-facing":
         if focus_depth is None:
             raise ValueError("a forward-facing video path needs the focus depth")
-        return forward_facing_video_poses(camera_to_worlds, focus_depth, num_poses, rotations, radius_scale)
+        return spiral_poses(
+            camera_to_worlds, focus_depth, num_poses, rotations, radius_scale, zrate=0.5, min_radius_ratio=MIN_RADIUS_RATIO
+        )
     if focus is None:
         raise ValueError(f"a video path around an {scene_type} scene needs its focus point")
     full = scene_type == "360" or coverage_degrees >= FULL_ORBIT_MIN_COVERAGE

@@ -8,7 +8,7 @@ Rows (seconds per frame or per test view, same machine, same model, same image s
 - spiral frame, now: the scene's path (``video.scene_video_cameras``), full scale only (the default);
 - ns-eval per view, before / now: nerfstudio's ``get_average_eval_image_metrics`` (what ``ns-eval`` runs) with
   every scale, then with the default (full scale only);
-- offline evaluator per view: ``offline_tools.render_test_rgb`` + the same metrics.
+- offline evaluator per view: ``offline_tools.score_test_view``, what ``offline_tools eval`` runs per view.
 Prints a Markdown table and writes JSON.
 """
 
@@ -40,12 +40,8 @@ def main(argv=None) -> list:
     import torch
     from nerfstudio.cameras.camera_paths import get_spiral_path
     from nerfstudio.utils.eval_utils import eval_setup
-    from torchmetrics.functional import structural_similarity_index_measure as ssim
-
-    from frugalnerf_ns.dataset import read_eval_mask
     from frugalnerf_ns.lpips_offline import OfflineLPIPS
-    from frugalnerf_ns.metrics import masked_image_metrics
-    from frugalnerf_ns.offline_tools import render_test_rgb
+    from frugalnerf_ns.offline_tools import score_test_view
     from frugalnerf_ns.video import scene_video_cameras
 
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
@@ -77,14 +73,7 @@ def main(argv=None) -> list:
 
     def offline():
         for index in views:
-            camera = dataset.cameras[index : index + 1].to(pipeline.device)
-            data = dataset[index]
-            image = data["image"][..., :3].to(pipeline.device)
-            mask = data["eval_mask"] if "eval_mask" in data else read_eval_mask(dataset, index)
-            rgb = render_test_rgb(model, camera, mask)
-            if mask is None:
-                mask = torch.ones(*image.shape[:2], 1, dtype=torch.bool)
-            masked_image_metrics(rgb, image, mask.to(rgb.device), ssim, lpips)
+            score_test_view(pipeline, dataset, index, lpips)
 
     theirs = get_spiral_path(start, steps=args.frames, radius=0.1)
     ours = scene_video_cameras(datamanager, start, args.frames)
