@@ -33,6 +33,7 @@ from frugalnerf_ns.dataset import FrugalDataset
 from frugalnerf_ns.mono_depth import load_or_predict
 from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
 from frugalnerf_ns.scene_analysis import (
+    SURROUND_MIN_COVERAGE,
     CameraLayout,
     SceneType,
     classify_camera_layout,
@@ -51,6 +52,7 @@ from frugalnerf_ns.sparse_points import (
     triangulate_training_views,
 )
 from frugalnerf_ns.video import cameras_at
+from frugalnerf_ns.video_path import orbit_poses
 
 
 @dataclass
@@ -167,7 +169,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         self.train_pixel_sampler = PixelSamplerConfig(num_rays_per_batch=self.config.train_num_rays_per_batch).setup()
         self.generator = torch.Generator().manual_seed(self.config.seed)
         if self.config.novel_views and self.config.num_novel_rays_per_batch > 0 and self.scene_type != "360":
-            self.novel_cameras = self._spiral_cameras(cameras)
+            self.novel_cameras = self._novel_view_cameras(cameras)
             self.novel_nearest_view = nearest_other_view(self.novel_cameras.camera_to_worlds[:, :3, 3], centers).to(
                 self.device
             )
@@ -301,12 +303,18 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             scene_center=self.train_dataparser_outputs.scene_box.get_center(),
         )
 
-    def _spiral_cameras(self, cameras: Cameras) -> Cameras:
-        """The spiral's poses with the first training camera's intrinsics."""
-        poses = spiral_poses(
-            cameras.camera_to_worlds, self.spiral_focus_depth(), self.config.num_novel_poses,
-            self.config.spiral_rotations, self.config.spiral_radius_scale, self.config.spiral_zrate,
-        )
+    def _novel_view_cameras(self, cameras: Cameras) -> Cameras:
+        """Novel poses with the first training camera's intrinsics: the paper's spiral around the mean training
+        pose, or, for an object the training cameras surround (NeRF-synthetic), where a mean pose would sit
+        inside the object, one turn around it at the cameras' mean distance and height."""
+        layout = self.scene_layout
+        if self.scene_type == "object" and layout.coverage_degrees >= SURROUND_MIN_COVERAGE:
+            poses = orbit_poses(cameras.camera_to_worlds, layout.focus, self.config.num_novel_poses, full_circle=True)
+        else:
+            poses = spiral_poses(
+                cameras.camera_to_worlds, self.spiral_focus_depth(), self.config.num_novel_poses,
+                self.config.spiral_rotations, self.config.spiral_radius_scale, self.config.spiral_zrate,
+            )
         return cameras_at(poses, cameras)
 
     def _sample_patches(self, num_patches: int, num_views: int, height: int, width: int, k: int) -> Int[Tensor, "rays 3"]:

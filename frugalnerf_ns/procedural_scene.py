@@ -78,7 +78,12 @@ def _box_hit(o: Tensor, d: Tensor, lo: Tensor, hi: Tensor) -> Tuple[Tensor, Tens
 
 
 def shade_rays(origins: Tensor, directions: Tensor) -> Tensor:
-    """Exact colour of each ray (N, 3) in [0, 1]."""
+    """Exact colour of each ray (N, 3) in [0, 1], on a white background."""
+    return shade_rays_rgba(origins, directions)[:, :3]
+
+
+def shade_rays_rgba(origins: Tensor, directions: Tensor) -> Tensor:
+    """Colour (on white where nothing is hit) and coverage (1 where a surface is hit, else 0) of each ray."""
     light = torch.nn.functional.normalize(torch.tensor([0.4, -0.5, 1.0]), dim=0)
     n = origins.shape[0]
     colors = WHITE.expand(n, 3).clone()
@@ -112,10 +117,11 @@ def shade_rays(origins: Tensor, directions: Tensor) -> Tensor:
     lit = face * (0.3 + 0.7 * (normal @ light).clamp_min(0))[:, None]
     take = t_box < best
     colors[take], best[take] = lit[take], t_box[take]
-    return colors.clamp(0, 1)
+    return torch.cat([colors.clamp(0, 1), torch.isfinite(best).float()[:, None]], dim=-1)
 
 
-def render_view(c2w: Tensor, spec: SceneSpec) -> Tensor:
+def render_view(c2w: Tensor, spec: SceneSpec, alpha: bool = False) -> Tensor:
+    """(height, width, 3) on white, or with ``alpha`` (height, width, 4): straight colour and coverage."""
     s = spec.supersample
     v, u = torch.meshgrid(
         (torch.arange(spec.height * s) + 0.5) / s, (torch.arange(spec.width * s) + 0.5) / s, indexing="ij"
@@ -125,8 +131,15 @@ def render_view(c2w: Tensor, spec: SceneSpec) -> Tensor:
     )
     dirs = torch.nn.functional.normalize(dirs_cam.reshape(-1, 3) @ c2w[:3, :3].T, dim=-1)
     origins = c2w[:3, 3].expand_as(dirs)
-    image = shade_rays(origins, dirs).reshape(spec.height, s, spec.width, s, 3).mean(dim=(1, 3))
-    return image
+    rgba = shade_rays_rgba(origins, dirs).reshape(spec.height, s, spec.width, s, 4)
+    if not alpha:
+        return rgba[..., :3].mean(dim=(1, 3))
+    coverage = rgba[..., 3:]
+    covered = coverage.mean(dim=(1, 3))
+    # Straight alpha: the mean colour of the covered sub-samples (so compositing on white gives back the
+    # white-background render exactly).
+    color = (rgba[..., :3] * coverage).mean(dim=(1, 3)) / covered.clamp_min(1e-6)
+    return torch.cat([color * (covered > 0), covered], dim=-1)
 
 
 def write_procedural_scene(out_dir: Path, spec: SceneSpec = SceneSpec()) -> Path:
@@ -155,6 +168,37 @@ def write_procedural_scene(out_dir: Path, spec: SceneSpec = SceneSpec()) -> Path
         "test_filenames": [names[i] for i in spec.test_ids],
     }
     (out_dir / "transforms.json").write_text(json.dumps(meta, indent=2))
+    return out_dir
+
+
+def blender_camera_poses(count: int, radius: float, seed: int) -> List[Tensor]:
+    """Cameras all around the object on a hemisphere, as in the NeRF-synthetic scenes: random azimuth,
+    elevation 15-65 degrees, looking at the scene's centre."""
+    gen = torch.Generator().manual_seed(seed)
+    azimuths = torch.rand(count, generator=gen) * 2 * math.pi
+    elevations = torch.deg2rad(15.0 + 50.0 * torch.rand(count, generator=gen))
+    eyes = radius * torch.stack(
+        [elevations.cos() * azimuths.cos(), elevations.cos() * azimuths.sin(), elevations.sin()], dim=-1
+    )
+    return [look_at(eye, torch.tensor([0.0, 0.0, 0.25])) for eye in eyes]
+
+
+def write_blender_scene(
+    out_dir: Path, spec: SceneSpec = SceneSpec(width=64, height=64, focal=70.0), counts: Tuple[int, int, int] = (12, 2, 8)
+) -> Path:
+    """The procedural scene in the NeRF-synthetic (Blender) layout: transforms_{train,val,test}.json
+    (camera_angle_x; file_path without suffix; transform_matrix camera-to-world, OpenGL axes) and RGBA
+    frames r_<i>.png in train/, val/ and test/, ``counts`` frames each, cameras all around the object."""
+    out_dir = Path(out_dir)
+    for seed, (split, count) in enumerate(zip(("train", "val", "test"), counts)):
+        (out_dir / split).mkdir(parents=True, exist_ok=True)
+        frames: List[Dict] = []
+        for i, c2w in enumerate(blender_camera_poses(count, spec.radius, seed)):
+            image = (render_view(c2w, spec, alpha=True).numpy() * 255).round().astype(np.uint8)
+            Image.fromarray(image, mode="RGBA").save(out_dir / split / f"r_{i}.png")
+            frames.append({"file_path": f"./{split}/r_{i}", "rotation": 0.0, "transform_matrix": c2w.tolist()})
+        meta = {"camera_angle_x": 2.0 * math.atan(spec.width / (2.0 * spec.focal)), "frames": frames}
+        (out_dir / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
     return out_dir
 
 

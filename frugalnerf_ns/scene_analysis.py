@@ -105,11 +105,11 @@ def classify_camera_layout(
 ) -> CameraLayout:
     """Forward-facing, object or 360 from the training cameras.
 
+    - object: an object mask or plain background (``has_object_mask``), whatever the cameras do;
     - 360: the centres surround the focus point (azimuth coverage >= ``surround_min_coverage``) or the
-      cameras look in opposing directions (mean viewing direction shorter than 0.5).
-    - forward-facing: every viewing direction within ``forward_facing_max_spread`` degrees of the mean,
-      and no object mask / plain background (``has_object_mask``).
-    - object: everything else (cameras converging on something, or a masked object).
+      cameras look in opposing directions (mean viewing direction shorter than 0.5);
+    - forward-facing: every viewing direction within ``forward_facing_max_spread`` degrees of the mean;
+    - object: everything else (cameras converging on something).
     """
     directions = viewing_directions(camera_to_worlds)
     mean = directions.mean(0)
@@ -124,9 +124,13 @@ def classify_camera_layout(
     if float(up.norm()) < 1e-9:
         up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     coverage = azimuth_coverage(camera_to_worlds[:, :3, 3], focus, up)
-    if coverage >= surround_min_coverage or resultant < 0.5:
-        kind: SceneType = "360"
-    elif spread <= forward_facing_max_spread and not has_object_mask:
+    if has_object_mask:
+        # A masked object or one on a plain background (DTU, NeRF-synthetic) is an object scene however the
+        # cameras stand, also when they surround it: it gets the occlusion loss and its background prior.
+        kind: SceneType = "object"
+    elif coverage >= surround_min_coverage or resultant < 0.5:
+        kind = "360"
+    elif spread <= forward_facing_max_spread:
         kind = "forward-facing"
     else:
         kind = "object"

@@ -1,9 +1,11 @@
 """Sparse depth from the few training views (paper Sec. 3.5, L_sd after DS-NeRF).
 
 The paper runs COLMAP on the training views only (all views would leak the test views' geometry). We do the
-same inside the pipeline with pycolmap, no COLMAP binary: SIFT features per training image, exhaustive
-matching (ratio test and cross-check), then triangulation with the known, fixed cameras. The geometry
-(tracks, DLT triangulation, reprojection and angle checks, the depth targets) is pure torch.
+same inside the pipeline: SIFT features per training image with pycolmap (no COLMAP binary), COLMAP's
+matching rule (ratio test, distance limit, cross-check) in torch, then triangulation with the known, fixed
+cameras. Every pair is matched for a few views; with more, each view only with its nearest cameras, so
+start-up grows linearly with the views. The geometry (pairs, matches, tracks, DLT triangulation,
+reprojection and angle checks, the depth targets) is pure torch.
 
 Conventions are ``reprojection.py``'s: nerfstudio cameras (camera-to-world, OpenGL axes), pixel (u, v) from
 the top-left corner with pixel centres at i + 0.5 (COLMAP's keypoints use the same), depth = metric distance
@@ -24,9 +26,10 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from frugalnerf_ns.cache import load_keyed_arrays, save_keyed_arrays
+from frugalnerf_ns.progress import Progress
 from frugalnerf_ns.reprojection import project_to_camera
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: matching in torch, nearest-camera pairs, feature cap enforced
 
 
 class SparseDepth(NamedTuple):
@@ -59,7 +62,9 @@ class TriangulationOptions:
     min_triangulation_angle: float = 0.5
     """Smallest angle, in degrees, between two rays of the track (smaller: depth is ill-conditioned)."""
     max_features: int = 8192
-    """SIFT features per image."""
+    """SIFT features per image (the largest-scale ones are kept)."""
+    match_neighbors: int = 8
+    """Each view is matched with this many nearest cameras (every pair when there are at most this + 1 views)."""
 
     def key(self) -> Dict[str, float]:
         return {k: float(v) for k, v in self.__dict__.items()}
@@ -205,7 +210,7 @@ def points_inside_box(sparse: SparseDepth, aabb: Float[Tensor, "2 3"]) -> Sparse
     )
 
 
-# ---- pycolmap: features and matches ----------------------------------------------------------------------------
+# ---- features (pycolmap) and matches ----------------------------------------------------------------------------
 def _pycolmap():
     try:
         import pycolmap
@@ -214,33 +219,78 @@ def _pycolmap():
     return pycolmap
 
 
-def extract_sift(images: Sequence[np.ndarray], max_features: int) -> Tuple[List[Tensor], List]:
-    """SIFT keypoints ((u, v) per feature) and pycolmap descriptors of uint8 grey or RGB images, on the CPU."""
+def extract_sift(images: Sequence[np.ndarray], max_features: int, progress: bool = True) -> Tuple[List[Tensor], List[Tensor]]:
+    """SIFT keypoints ((u, v) per feature) and unit-length float descriptors of uint8 grey or RGB images, on
+    the CPU, at most ``max_features`` per image (the largest-scale ones: they repeat best across views;
+    pycolmap's own cap is not applied by its in-memory extractor)."""
     pycolmap = _pycolmap()
     options = pycolmap.FeatureExtractionOptions()
     options.sift.max_num_features = int(max_features)
     extractor = pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
     keypoints, descriptors = [], []
+    ticker = Progress(len(images), "frugalnerf sparse points: SIFT", "view", "views/s", 5.0, quiet_seconds=3.0) if progress else None
     for image in images:
         grey = image if image.ndim == 2 else np.asarray(image[..., :3].astype(np.float32) @ [0.299, 0.587, 0.114])
         kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(np.clip(grey, 0, 255).astype(np.uint8)))
-        keypoints.append(torch.tensor([[kp.x, kp.y] for kp in kps], dtype=torch.float64).reshape(-1, 2))
-        descriptors.append((kps, desc))
+        uv = torch.tensor([[kp.x, kp.y] for kp in kps], dtype=torch.float64).reshape(-1, 2)
+        scale = torch.tensor([abs(kp.a11 * kp.a22 - kp.a12 * kp.a21) for kp in kps], dtype=torch.float64)
+        features = torch.from_numpy(np.asarray(desc.data, dtype=np.float32)).reshape(len(kps), -1)
+        if len(kps) > max_features:
+            keep = torch.sort(torch.argsort(scale, descending=True)[:max_features]).values
+            uv, features = uv[keep], features[keep]
+        keypoints.append(uv)
+        descriptors.append(torch.nn.functional.normalize(features, dim=-1))
+        if ticker is not None:
+            ticker.tick()
     return keypoints, descriptors
 
 
-def match_all_pairs(descriptors: Sequence) -> Dict[Tuple[int, int], np.ndarray]:
-    """pycolmap's SIFT matcher (ratio test, cross-check) on every pair of views; no geometric verification
-    here: the known cameras check every match when its point is triangulated."""
-    pycolmap = _pycolmap()
-    matcher = pycolmap.FeatureMatcher.create(pycolmap.FeatureMatchingOptions(), pycolmap.Device.cpu)
+def match_descriptors(
+    a: Float[Tensor, "n d"], b: Float[Tensor, "m d"], max_ratio: float = 0.8, max_distance: float = 0.7
+) -> Int[Tensor, "matches 2"]:
+    """COLMAP's SIFT matching rule on unit descriptors: the angle to the nearest descriptor at most
+    ``max_distance`` radians and below ``max_ratio`` times the angle to the second nearest, both ways, and
+    the two directions agree (cross-check). Returns (index in a, index in b) pairs."""
+    if len(a) < 2 or len(b) < 2:
+        return torch.zeros(0, 2, dtype=torch.long)
+
+    def one_way(similarity: Tensor) -> Tensor:
+        top = similarity.topk(2, dim=1)
+        angles = torch.arccos(top.values.clamp(-1.0, 1.0))
+        ok = (angles[:, 0] <= max_distance) & (angles[:, 0] < max_ratio * angles[:, 1])
+        return torch.where(ok, top.indices[:, 0], torch.full_like(top.indices[:, 0], -1))
+
+    similarity = a @ b.T
+    forward, backward = one_way(similarity), one_way(similarity.T)
+    rows = torch.nonzero(forward >= 0)[:, 0]
+    mutual = backward[forward[rows]] == rows
+    return torch.stack([rows[mutual], forward[rows][mutual]], dim=-1)
+
+
+def neighbour_pairs(camera_to_worlds: Float[Tensor, "views 3 4"], neighbors: int) -> List[Tuple[int, int]]:
+    """Pairs (i, j), i < j, joining every view with its ``neighbors`` nearest cameras (by centre distance):
+    at most views x neighbors pairs instead of views^2 / 2; every pair when views <= neighbors + 1."""
+    count = camera_to_worlds.shape[0]
+    if count <= neighbors + 1:
+        return [(i, j) for i in range(count) for j in range(i + 1, count)]
+    centers = camera_to_worlds[:, :3, 3].double()
+    distance = torch.cdist(centers, centers)
+    distance.fill_diagonal_(float("inf"))
+    nearest = distance.topk(neighbors, dim=1, largest=False).indices
+    return sorted({(min(i, int(j)), max(i, int(j))) for i in range(count) for j in nearest[i]})
+
+
+def match_pairs(
+    descriptors: Sequence[Tensor], pairs: Sequence[Tuple[int, int]], progress: bool = True
+) -> Dict[Tuple[int, int], np.ndarray]:
+    """Matches of each pair of views; no geometric verification here: the known cameras check every match
+    when its point is triangulated."""
+    ticker = Progress(len(pairs), "frugalnerf sparse points: matching", "pair", "pairs/s", 5.0, quiet_seconds=3.0) if progress else None
     matches = {}
-    for i in range(len(descriptors)):
-        for j in range(i + 1, len(descriptors)):
-            (kp_i, d_i), (kp_j, d_j) = descriptors[i], descriptors[j]
-            if len(kp_i) == 0 or len(kp_j) == 0:
-                continue
-            matches[(i, j)] = np.asarray(matcher.match(kp_i, d_i, kp_j, d_j), dtype=np.int64).reshape(-1, 2)
+    for i, j in pairs:
+        matches[(i, j)] = match_descriptors(descriptors[i], descriptors[j]).numpy()
+        if ticker is not None:
+            ticker.tick()
     return matches
 
 
@@ -250,11 +300,13 @@ def triangulate_training_views(
     intrinsics: Float[Tensor, "views 4"],
     options: Optional[TriangulationOptions] = None,
     depth_bounds: Optional[Tuple[float, float]] = None,
+    progress: bool = True,
 ) -> SparseDepth:
-    """Sparse points of the training views: SIFT, matching and triangulation with the fixed cameras."""
+    """Sparse points of the training views: SIFT, matching of nearby views and triangulation with the fixed
+    cameras."""
     options = options or TriangulationOptions()
-    keypoints, descriptors = extract_sift(images, options.max_features)
-    matches = match_all_pairs(descriptors)
+    keypoints, descriptors = extract_sift(images, options.max_features, progress)
+    matches = match_pairs(descriptors, neighbour_pairs(camera_to_worlds, options.match_neighbors), progress)
     tracks = build_tracks(matches, [len(k) for k in keypoints])
     return triangulate_tracks(tracks, keypoints, camera_to_worlds.double(), intrinsics.double(), options, depth_bounds)
 

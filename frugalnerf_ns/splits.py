@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import Any, Dict, List, Optional, Sequence
 
+import numpy as np
 import yaml
 
 from frugalnerf_ns.data import DataError
@@ -26,6 +27,12 @@ def load_split_table() -> Dict[str, Any]:
     """``configs/splits.yaml``: per-layout defaults and the paper's per-scene training views."""
     text = resources.files("frugalnerf_ns.configs").joinpath("splits.yaml").read_text()
     return yaml.safe_load(text)
+
+
+def dietnerf_train_views(num_frames: int, count: int, seed: int = 0) -> List[int]:
+    """DietNeRF's few-shot Blender views (run_nerf.py: ``np.random.seed(seed)`` then
+    ``np.random.choice(i_train, size=count, replace=False)``, default seed 0), which FreeNeRF reuses."""
+    return [int(i) for i in np.random.RandomState(seed).choice(num_frames, size=count, replace=False)]
 
 
 def every_nth(num_frames: int, interval: int = 8) -> List[int]:
@@ -67,7 +74,7 @@ def select_views(
             (layouts whose default test rule is not disjoint from their training frames, e.g. RealEstate).
     """
     test = list(test_views) if test_views else [i for i in default_test if i < num_frames]
-    _check_indices(test, num_frames, "test", what)
+    check_indices(test, num_frames, "test", what)
     if train_views:
         train = list(train_views)
     else:
@@ -82,7 +89,7 @@ def select_views(
             raise DataError(f"{what}: asked for {count} training views but only {len(candidates)} frames are not test views")
         else:
             train = uniform_subset(candidates, count)
-    _check_indices(train, num_frames, "train", what)
+    check_indices(train, num_frames, "train", what)
     if default_test_excludes_train and not test_views:
         test = [i for i in test if i not in set(train)]
     overlap = sorted(set(train) & set(test))
@@ -93,7 +100,7 @@ def select_views(
     return ViewSplit(train=train, test=test)
 
 
-def _check_indices(indices: Sequence[int], num_frames: int, kind: str, what: str) -> None:
+def check_indices(indices: Sequence[int], num_frames: int, kind: str, what: str) -> None:
     bad = [i for i in indices if not 0 <= i < num_frames]
     if bad:
         raise DataError(f"{what}: {kind} view(s) {bad} do not exist (the scene has {num_frames} frames: 0..{num_frames - 1})")

@@ -11,46 +11,13 @@ pipelines; every other method keeps nerfstudio's path.
 from __future__ import annotations
 
 import sys
-import time
 import weakref
-from typing import Callable, Optional
+from typing import Optional
 
 from nerfstudio.cameras.cameras import Cameras
 
+from frugalnerf_ns.progress import FrameProgress
 from frugalnerf_ns.video_path import video_poses
-
-
-def format_duration(seconds: float) -> str:
-    seconds = max(0, int(round(seconds)))
-    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
-
-
-class FrameProgress:
-    """One line per ``every_seconds`` (and the first and last frame): frames done, fps, ETA. Plain lines,
-    flushed, so a log file shows progress while rendering (a progress bar shows only when it finishes)."""
-
-    def __init__(self, total: int, label: str = "frugalnerf render", every_seconds: float = 10.0,
-                 write: Callable[[str], None] = print, clock: Callable[[], float] = time.monotonic) -> None:
-        self.total, self.label, self.every, self.write, self.clock = total, label, every_seconds, write, clock
-        self.done = 0
-        self.start = clock()
-        self.last_line: Optional[float] = None
-
-    def line(self) -> str:
-        elapsed = max(self.clock() - self.start, 1e-9)
-        fps = self.done / elapsed
-        eta = (self.total - self.done) / fps if fps > 0 else float("inf")
-        eta_text = format_duration(eta) if eta != float("inf") else "?"
-        return (f"{self.label}: frame {self.done}/{self.total}, {fps:.2f} fps ({elapsed / max(self.done, 1):.1f} s/frame), "
-                f"elapsed {format_duration(elapsed)}, ETA {eta_text}")
-
-    def tick(self) -> None:
-        self.done += 1
-        now = self.clock()
-        if self.done in (1, self.total) or self.last_line is None or now - self.last_line >= self.every:
-            self.last_line = now
-            self.write(self.line())
-            sys.stdout.flush()
 
 
 def cameras_at(poses: Float[Tensor, "n 3 4"], camera) -> Cameras:

@@ -49,7 +49,7 @@ def main(argv=None) -> None:
         TriangulationOptions,
         build_tracks,
         extract_sift,
-        match_all_pairs,
+        match_pairs,
         opencv_projection_matrices,
         triangulate_tracks,
     )
@@ -60,7 +60,7 @@ def main(argv=None) -> None:
     intrinsics = torch.cat([cameras.fx, cameras.fy, cameras.cx, cameras.cy], -1).double()
     images = [np.asarray(Image.open(p).convert("RGB")) for p in outputs.image_filenames]
     keypoints, descriptors = extract_sift(images, 8192)
-    matches = match_all_pairs(descriptors)[(0, 1)]
+    matches = match_pairs(descriptors, [(0, 1)])[(0, 1)]
     projections = opencv_projection_matrices(c2w, intrinsics)
     f = fundamental_from_projections(projections[0], projections[1], c2w[0, :3, 3])
     distances = epipolar_distances(f, keypoints[0][matches[:, 0]], keypoints[1][matches[:, 1]])

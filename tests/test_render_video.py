@@ -9,7 +9,8 @@ import torch
 from PIL import Image
 
 from frugalnerf_ns.metrics import capped_psnr
-from frugalnerf_ns.video import FrameProgress, format_duration, scene_video_cameras
+from frugalnerf_ns.progress import FrameProgress, format_duration
+from frugalnerf_ns.video import scene_video_cameras
 from frugalnerf_ns.video_path import roll_degrees, world_up
 
 

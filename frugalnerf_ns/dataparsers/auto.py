@@ -10,6 +10,7 @@ from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserCo
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from frugalnerf_ns.data import IMAGE_SUFFIXES, DataError
+from frugalnerf_ns.dataparsers.blender import SPLIT_FILES, BlenderDataParserConfig, is_blender_layout
 from frugalnerf_ns.dataparsers.common import FewShotDataParserConfig
 from frugalnerf_ns.dataparsers.dtu import CAMERA_FILES, DTUDataParserConfig
 from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
@@ -29,6 +30,8 @@ def _is_colmap(data: Path) -> bool:
 LAYOUTS: List[Tuple[str, str, Callable[[Path], bool], Type[DataParserConfig]]] = [
     ("nerfstudio", "transforms.json", lambda d: d.suffix == ".json" or (d / "transforms.json").is_file(),
      FewShotNerfstudioDataParserConfig),
+    ("Blender (NeRF-synthetic)", f"{SPLIT_FILES['train']} and {SPLIT_FILES['test']}", is_blender_layout,
+     BlenderDataParserConfig),
     ("LLFF", "poses_bounds.npy", lambda d: (d / "poses_bounds.npy").is_file(), LLFFDataParserConfig),
     ("DTU/IDR", f"{' or '.join(CAMERA_FILES)} with image/", lambda d: (d / "image").is_dir()
      and any((d / f).is_file() for f in CAMERA_FILES), DTUDataParserConfig),
@@ -40,11 +43,12 @@ LAYOUTS: List[Tuple[str, str, Callable[[Path], bool], Type[DataParserConfig]]] =
 
 @dataclass
 class AutoDataParserConfig(FewShotDataParserConfig):
-    """Detects the layout of --data (nerfstudio, LLFF, DTU/IDR, RealEstate-10K, COLMAP) and parses it."""
+    """Detects the layout of --data (nerfstudio, Blender, LLFF, DTU/IDR, RealEstate-10K, COLMAP) and parses it."""
 
     _target: Type = field(default_factory=lambda: AutoDataParser)
     downscale_factor: Optional[int] = None
-    """Image downscale: LLFF reads images_<factor>/ (default 8); nerfstudio/COLMAP pass it on (default: auto)."""
+    """Image downscale: LLFF reads images_<factor>/ (default 8); Blender halves 800x800 frames (default: to 400
+    wide); nerfstudio/COLMAP pass it on (default: auto)."""
     center_method: Literal["poses", "focus", "none"] = "poses"
     """nerfstudio/COLMAP data only: how nerfstudio centres the poses (focus: cameras looking at an object)."""
 

@@ -3,6 +3,7 @@
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 
 from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig
+from frugalnerf_ns.dataparsers.blender import BlenderDataParserConfig
 from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
 from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
 from frugalnerf_ns.dataparsers.nerfstudio_format import (
@@ -14,6 +15,9 @@ from frugalnerf_ns.dataparsers.realestate import RealEstateDataParserConfig
 frugal_auto = DataParserSpecification(AutoDataParserConfig(), "detect the layout of --data (FrugalNeRF default)")
 frugal_llff = DataParserSpecification(LLFFDataParserConfig(), "LLFF: poses_bounds.npy + images_N/, NDC")
 frugal_dtu = DataParserSpecification(DTUDataParserConfig(), "DTU / IDR: cameras_sphere.npz, image/, mask/")
+frugal_blender = DataParserSpecification(
+    BlenderDataParserConfig(), "NeRF-synthetic (Blender): transforms_train.json / transforms_test.json, RGBA frames"
+)
 frugal_realestate = DataParserSpecification(
     RealEstateDataParserConfig(), "RealEstate-10K (ViP-NeRF layout): rgb/, CameraIntrinsics.csv, CameraExtrinsics.csv"
 )
