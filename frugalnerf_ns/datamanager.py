@@ -126,6 +126,8 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
     train_nearest_view: Int[Tensor, "views"]
     novel_cameras: Optional[Cameras] = None
     novel_nearest_view: Optional[Int[Tensor, "poses"]] = None
+    novel_path: str = "spiral"
+    """Which path the novel poses follow: "spiral" (the paper's) or "orbit" (objects the cameras surround)."""
     sparse: Optional[SparseDepth] = None
     mono_depth: Optional[Float[Tensor, "views height width"]] = None
 
@@ -308,7 +310,9 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         pose, or, for an object the training cameras surround (NeRF-synthetic), where a mean pose would sit
         inside the object, one turn around it at the cameras' mean distance and height."""
         layout = self.scene_layout
-        if self.scene_type == "object" and layout.coverage_degrees >= SURROUND_MIN_COVERAGE:
+        surrounded = self.scene_type == "object" and layout.coverage_degrees >= SURROUND_MIN_COVERAGE
+        self.novel_path = "orbit" if surrounded else "spiral"
+        if surrounded:
             poses = orbit_poses(cameras.camera_to_worlds, layout.focus, self.config.num_novel_poses, full_circle=True)
         else:
             poses = spiral_poses(

@@ -69,10 +69,13 @@ def score_test_view(pipeline, dataset, index: int, lpips) -> Dict[str, float]:
 
     from frugalnerf_ns.dataset import read_eval_mask
     from frugalnerf_ns.metrics import masked_image_metrics
+    from frugalnerf_ns.objective import target_rgb
 
     camera = dataset.cameras[index : index + 1].to(pipeline.device)
     data = dataset[index]
-    image = data["image"][..., :3].to(pipeline.device)
+    image = data["image"].to(pipeline.device)
+    if image.shape[-1] == 4:  # RGBA (NeRF-synthetic): scored on white, as the few-shot protocol composites it
+        image = target_rgb(image, torch.ones(3, device=image.device))
     # The eval mask where the dataparser lists one, also for nerfstudio's datasets (tensorf's), which
     # do not load it: every method is scored on the same pixels.
     mask = data["eval_mask"] if "eval_mask" in data else read_eval_mask(dataset, index)

@@ -75,7 +75,7 @@ def scene_summary(datamanager, model) -> str:
     else:
         sparse = f"on ({datamanager.sparse.num_points} points)"
     if datamanager.novel_cameras is not None:
-        novel = f"on ({len(datamanager.novel_cameras)} spiral poses)"
+        novel = f"on ({len(datamanager.novel_cameras)} {datamanager.novel_path} poses)"
     else:
         novel = "off (360 scene)" if datamanager.scene_type == "360" and dm.novel_views else "off (option)"
     if cfg.occlusion_weight <= 0:

@@ -29,6 +29,7 @@ from frugalnerf_ns.cache import load_keyed_arrays, save_keyed_arrays
 from frugalnerf_ns.progress import Progress
 from frugalnerf_ns.reprojection import project_to_camera
 
+SIFT_DIMENSIONS = 128
 CACHE_VERSION = 2  # 2: matching in torch, nearest-camera pairs, feature cap enforced
 
 
@@ -234,7 +235,8 @@ def extract_sift(images: Sequence[np.ndarray], max_features: int, progress: bool
         kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(np.clip(grey, 0, 255).astype(np.uint8)))
         uv = torch.tensor([[kp.x, kp.y] for kp in kps], dtype=torch.float64).reshape(-1, 2)
         scale = torch.tensor([abs(kp.a11 * kp.a22 - kp.a12 * kp.a21) for kp in kps], dtype=torch.float64)
-        features = torch.from_numpy(np.asarray(desc.data, dtype=np.float32)).reshape(len(kps), -1)
+        # 128-wide even without features (a blank image), so matching sees an empty (0, 128) set.
+        features = torch.from_numpy(np.asarray(desc.data, dtype=np.float32)).reshape(len(kps), SIFT_DIMENSIONS)
         if len(kps) > max_features:
             keep = torch.sort(torch.argsort(scale, descending=True)[:max_features]).values
             uv, features = uv[keep], features[keep]

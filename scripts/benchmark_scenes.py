@@ -10,6 +10,7 @@ Usage:
   python scripts/benchmark_scenes.py [--config configs/benchmark_scenes.yaml] [--scenes fern dtu_scan65]
          [--views 2 3] [--baselines tensorf nerfacto] [--variants no-geo no-novel single-scale]
          [--preset frugalnerf-cpu] [--only-baselines] [--max-iterations N] [--seeds 42 43] [--out outputs/benchmark]
+         [--data-root DIR]
 
 ``--variants`` adds FrugalNeRF runs with the named option sets of the config's ``variants`` section (the
 paper's ablations), each labelled ``<preset>[<variant>]`` in the table. ``--seeds`` repeats every run with each
@@ -46,6 +47,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     parser.add_argument("--max-iterations", type=int, help="override every method's iteration budget")
     parser.add_argument("--seeds", type=int, nargs="*", default=[], help="repeat every run with each seed")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "benchmark")
+    parser.add_argument("--data-root", type=Path, help="where the scenes' data paths start (default: the config's data_root)")
     args = parser.parse_args(argv)
 
     config = yaml.safe_load(args.config.read_text())
@@ -53,7 +55,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     unknown_scenes = sorted(set(names) - set(config["scenes"]))
     if unknown_scenes:
         sys.exit(f"benchmark: unknown scenes {unknown_scenes}; {args.config} has {sorted(config['scenes'])}")
-    present = [n for n in names if scene_data(args.config, config, n).is_dir()]
+    present = [n for n in names if scene_data(args.config, config, n, args.data_root).is_dir()]
     for name in sorted(set(names) - set(present)):
         print(f"benchmark: skipping {name}: its data is not on this machine")
     unknown = sorted(set(args.variants) - set(config.get("variants") or {}))
@@ -63,7 +65,8 @@ def main(argv: Optional[List[str]] = None) -> None:
     options.update({v: [*map(str, config["variants"][v])] for v in args.variants})
     methods = ([] if args.only_baselines else [args.preset or SCENE_PRESET]) + list(args.baselines)
     try:
-        specs = expand(args.config, present, args.views, methods, options, args.seeds or [None], args.max_iterations)
+        specs = expand(args.config, present, args.views, methods, options, args.seeds or [None], args.max_iterations,
+                       data_root=args.data_root)
     except GridError as err:
         sys.exit(f"benchmark: {err}")
     records = [r for r in run_sweep(specs, args.out) if r.get("status") == "ok"]

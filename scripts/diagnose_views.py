@@ -37,7 +37,9 @@ def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tenso
         model.num_rendered_scales = num_scales
     with torch.no_grad():
         outputs = model.get_outputs_for_camera_ray_bundle(bundle)
-    image = dataset[index]["image"][..., :3].float()
+    image = dataset[index]["image"].float()
+    if image.shape[-1] == 4:  # RGBA (NeRF-synthetic): on white, as the evaluator scores it
+        image = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])
     rows: List[Dict[str, float]] = []
     pictures = [(image.numpy() * 255).astype(np.uint8)]
     depths = []

@@ -1,5 +1,6 @@
 """Sparse depth: pycolmap SIFT + matching, torch triangulation with fixed cameras, cache, L_sd."""
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -10,12 +11,17 @@ from PIL import Image, ImageFilter
 from frugalnerf_ns.cache import cache_file_name
 from frugalnerf_ns.losses import inverse_depth_loss
 from frugalnerf_ns.procedural_scene import look_at
+from frugalnerf_ns.progress import Progress
 from frugalnerf_ns.reprojection import project_to_camera
 from frugalnerf_ns.sparse_points import (
     SparseDepth,
     TriangulationOptions,
     build_tracks,
     cache_key,
+    extract_sift,
+    match_descriptors,
+    match_pairs,
+    neighbour_pairs,
     load_sparse_depth,
     opencv_projection_matrices,
     save_sparse_depth,
@@ -219,3 +225,89 @@ def test_points_outside_the_scene_box_are_dropped_with_their_observations():
     assert kept.num_points == 2 and torch.equal(kept.points, points[[0, 2]])
     assert kept.point.tolist() == [0, 0, 1, 1] and kept.depth.tolist() == [1, 2, 5, 6]
     assert torch.equal(kept.pixels, sparse.pixels[[0, 1, 4, 5]])
+
+
+@pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
+def test_torch_matching_agrees_with_pycolmaps_matcher_on_fern():
+    """The same rule as COLMAP's SIFT matcher (ratio 0.8, 0.7 rad, cross-check): nearly the same matches."""
+    import pycolmap
+
+    files = sorted((FERN / "images_8").iterdir())
+    images = [np.asarray(Image.open(files[i]).convert("RGB")) for i in (6, 13)]
+    keypoints, descriptors = extract_sift(images, 8192, progress=False)
+    ours = {tuple(m) for m in match_descriptors(descriptors[0], descriptors[1]).tolist()}
+    extractor = pycolmap.FeatureExtractor.create(pycolmap.FeatureExtractionOptions(), pycolmap.Device.cpu)
+    grey = [np.clip(im.astype(np.float32) @ [0.299, 0.587, 0.114], 0, 255).astype(np.uint8) for im in images]
+    features = [extractor.extract_from_uint8_array(np.ascontiguousarray(g)) for g in grey]
+    assert [len(f[0]) for f in features] == [len(k) for k in keypoints]  # the same features, in the same order
+    matcher = pycolmap.FeatureMatcher.create(pycolmap.FeatureMatchingOptions(), pycolmap.Device.cpu)
+    theirs = {tuple(m) for m in np.asarray(matcher.match(*features[0], *features[1])).reshape(-1, 2).tolist()}
+    assert len(theirs) >= 200
+    assert len(ours & theirs) >= 0.97 * len(theirs) and len(ours) <= 1.03 * len(theirs)
+
+
+def test_a_blank_image_has_no_features_and_no_matches():
+    tex = texture()
+    images = [np.zeros((HEIGHT, WIDTH), np.uint8), render_plane(camera((0.1, 0.0, 2.0)), tex)]
+    keypoints, descriptors = extract_sift(images, 8192, progress=False)
+    assert keypoints[0].shape == (0, 2) and descriptors[0].shape == (0, 128) and len(keypoints[1]) > 100
+    assert match_descriptors(descriptors[0], descriptors[1]).shape == (0, 2)
+
+
+def test_matching_keeps_mutual_distinct_nearest_neighbours_only():
+    gen = torch.Generator().manual_seed(0)
+    a = torch.nn.functional.normalize(torch.rand(50, 128, generator=gen), dim=-1)
+    b = torch.nn.functional.normalize(a[torch.arange(49, -1, -1)] + 0.01 * torch.rand(50, 128, generator=gen), dim=-1)
+    matches = match_descriptors(a, b)
+    assert sorted(matches.tolist()) == [[i, 49 - i] for i in range(50)]
+    # A descriptor with two equally close candidates fails the ratio test.
+    twin = torch.cat([b, b[:1]])  # b[0] is a[49]'s partner
+    assert 49 not in match_descriptors(a, twin)[:, 0].tolist() and len(match_descriptors(a, twin)) == 49
+    assert match_descriptors(a[:1], b).shape == (0, 2)
+
+
+def ring_of_cameras(count):
+    angles = torch.arange(count, dtype=torch.float64) * 2 * math.pi / count
+    return torch.stack([camera((3 * math.cos(a), 0.3, 3 * math.sin(a))) for a in angles.tolist()])
+
+
+def test_neighbour_pairs_grow_linearly_and_join_nearby_cameras():
+    assert neighbour_pairs(ring_of_cameras(6), neighbors=8) == [(i, j) for i in range(6) for j in range(i + 1, 6)]
+    for count in (30, 100):
+        pairs = neighbour_pairs(ring_of_cameras(count), neighbors=8)
+        # On a ring each camera's 8 nearest are the 4 on either side: exactly 4 pairs per view.
+        assert len(pairs) == 4 * count < count * (count - 1) // 2
+        gaps = {min((j - i) % count, (i - j) % count) for i, j in pairs}
+        assert gaps == {1, 2, 3, 4}
+        assert all(i < j for i, j in pairs)
+
+
+def test_feature_cap_keeps_the_largest_scale_features():
+    tex = texture()
+    image = render_plane(camera((0.1, 0.0, 2.0)), tex)
+    full, _ = extract_sift([image], 8192, progress=False)
+    capped, descriptors = extract_sift([image], 100, progress=False)
+    assert len(full[0]) > 300 and len(capped[0]) == 100 and descriptors[0].shape == (100, 128)
+    assert torch.allclose(descriptors[0].norm(dim=-1), torch.ones(100))
+    kept = {tuple(p) for p in capped[0].tolist()}
+    assert kept <= {tuple(p) for p in full[0].tolist()}
+
+
+def test_match_pairs_prints_progress_only_when_it_takes_long(monkeypatch, capsys):
+    import frugalnerf_ns.sparse_points as sparse_points
+
+    descriptors = [torch.nn.functional.normalize(torch.rand(20, 128), dim=-1) for _ in range(4)]
+    pairs = neighbour_pairs(ring_of_cameras(4), neighbors=3)
+    match_pairs(descriptors, pairs)
+    assert capsys.readouterr().out == ""  # a fast start-up stays silent
+    now = [0.0]
+
+    def slow_clock():
+        now[0] += 2.0  # every pair "takes" 2 s
+        return now[0]
+
+    monkeypatch.setattr(sparse_points, "Progress", lambda *a, **k: Progress(*a, **{**k, "clock": slow_clock}))
+    matches = match_pairs(descriptors, pairs)
+    lines = capsys.readouterr().out.splitlines()
+    assert len(matches) == len(pairs) == 6
+    assert lines and lines[-1].startswith("frugalnerf sparse points: matching: pair 6/6")
