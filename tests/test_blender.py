@@ -201,3 +201,22 @@ def test_startup_benchmark_times_every_stage_and_writes_json(blender_scene, tmp_
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "benchmark_startup:" in bad.stderr and "40" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_800_pixel_frames_are_halved_to_the_protocols_400_by_default(tmp_path):
+    spec = SceneSpec(width=800, height=800, focal=1111.1, supersample=1)
+    scene = write_blender_scene(tmp_path / "full", spec, counts=(2, 1, 1))
+    train = outputs(scene, train_views=(0, 1))
+    assert {Image.open(p).size for p in train.image_filenames} == {(400, 400)}
+    assert int(train.cameras.width[0]) == 400 and abs(float(train.cameras.fx[0]) - 1111.1 / 2) < 1e-2
+    test = outputs(scene, "test")
+    assert Image.open(test.image_filenames[0]).size == (400, 400)
+
+
+def test_unreadable_json_is_one_clear_error(blender_scene, tmp_path):
+    scene = tmp_path / "badjson"
+    shutil.copytree(blender_scene, scene, ignore=shutil.ignore_patterns("frugalnerf_cache"))
+    (scene / "transforms_test.json").write_text('{"camera_angle_x": 0.7, "frames": [')
+    with pytest.raises(DataError) as err:
+        outputs(scene, "test")
+    assert "\n" not in str(err.value) and "transforms_test.json" in str(err.value) and "JSON" in str(err.value)
