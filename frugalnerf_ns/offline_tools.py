@@ -73,9 +73,8 @@ def score_test_view(pipeline, dataset, index: int, lpips) -> Dict[str, float]:
 
     camera = dataset.cameras[index : index + 1].to(pipeline.device)
     data = dataset[index]
-    image = data["image"].to(pipeline.device)
-    if image.shape[-1] == 4:  # RGBA (NeRF-synthetic): scored on white, as the few-shot protocol composites it
-        image = target_rgb(image, torch.ones(3, device=image.device))
+    # RGBA (NeRF-synthetic) is scored on white, as the few-shot protocol composites it; RGB as it is.
+    image = target_rgb(data["image"].to(pipeline.device), torch.ones(3, device=pipeline.device))
     # The eval mask where the dataparser lists one, also for nerfstudio's datasets (tensorf's), which
     # do not load it: every method is scored on the same pixels.
     mask = data["eval_mask"] if "eval_mask" in data else read_eval_mask(dataset, index)

@@ -19,6 +19,8 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
+from frugalnerf_ns.objective import target_rgb
+
 
 def depth_picture(depth: torch.Tensor, lo: float, hi: float) -> np.ndarray:
     """Depth as grey levels between fixed bounds (near: bright), the same bounds for every scale."""
@@ -37,9 +39,8 @@ def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tenso
         model.num_rendered_scales = num_scales
     with torch.no_grad():
         outputs = model.get_outputs_for_camera_ray_bundle(bundle)
-    image = dataset[index]["image"].float()
-    if image.shape[-1] == 4:  # RGBA (NeRF-synthetic): on white, as the evaluator scores it
-        image = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])
+    # RGBA (NeRF-synthetic) on white, as the evaluator scores it; RGB as it is.
+    image = target_rgb(dataset[index]["image"].float(), torch.ones(3))
     rows: List[Dict[str, float]] = []
     pictures = [(image.numpy() * 255).astype(np.uint8)]
     depths = []
