@@ -2,7 +2,7 @@
 # when it is missing or was built from other pins.
 VENV := .venv
 
-.PHONY: setup demo test test-slow benchmark
+.PHONY: setup demo test test-slow benchmark gate
 
 setup:
 	@bash scripts/setup_venv.sh
@@ -18,3 +18,8 @@ test-slow: setup
 
 benchmark: setup
 	$(VENV)/bin/python scripts/benchmark_vs_tensorf.py
+
+# The quality gate (configs/gate.yaml): the CPU presets on fern, flower, horns and DTU scan65 against
+# configs/gate_baseline.yaml; exits non-zero on a regression (~1 h on 2 cores).
+gate: setup
+	$(VENV)/bin/frugalnerf-gate

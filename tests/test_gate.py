@@ -1,0 +1,154 @@
+"""The quality gate: its files, the verdict per scene, and the command end to end on recorded run results
+(the runs themselves are the sweep runner's, tested in test_sweep.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from frugalnerf_ns.sweep import gate
+from frugalnerf_ns.sweep.store import ResultStore
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_repository_gate_covers_every_scene_with_its_cpu_preset():
+    scenes_file, scenes = gate.load_gate(ROOT / "configs" / "gate.yaml")
+    by_name = {s.name: s for s in scenes}
+    assert set(by_name) == {"fern", "flower", "horns", "dtu_scan65"}
+    assert len(by_name["horns"].seeds) >= 2 and by_name["horns"].max_spread is not None
+    specs = gate.gate_specs(scenes_file, scenes)
+    methods = {label: {s.method for s in group} for label, group in specs.items()}
+    assert methods == {"fern-2v": {"frugalnerf-cpu"}, "flower-2v": {"frugalnerf-cpu"}, "horns-2v": {"frugalnerf-cpu"},
+                       "dtu_scan65-2v": {"frugalnerf-dtu-cpu"}}
+    horns = specs["horns-2v"]
+    assert [s.seed for s in horns] == by_name["horns"].seeds
+    assert horns[0].parser_args[-3:] == ["--train-views", "20", "42"]
+    # each seed seeds both nerfstudio and our batch sampler
+    assert horns[1].train_args[-4:] == ["--machine.seed", str(horns[1].seed), "--pipeline.datamanager.seed",
+                                        str(horns[1].seed)]
+    assert len({s.key for group in specs.values() for s in group}) == 5
+
+
+def _scene(max_spread=None, seeds=(1, 2)):
+    return gate.GateScene("s", 2, list(seeds), {"psnr": 0.3, "ssim": 0.01, "lpips": 0.015}, max_spread)
+
+
+def _records(psnrs, ssim=0.5, lpips=0.4):
+    return [{"status": "ok", "seed": i, "psnr": p, "ssim": ssim, "lpips": lpips} for i, p in enumerate(psnrs)]
+
+
+def test_verdict_flags_each_metric_beyond_its_tolerance_and_only_then():
+    scene = _scene()
+    base = {"mean": {"psnr": 17.0, "ssim": 0.5, "lpips": 0.4}}
+    assert gate.verdict(scene, gate.summarise(_records([16.8, 16.9])), base) == []  # 0.15 dB lower: within
+    assert gate.verdict(scene, gate.summarise(_records([18.0, 19.0])), base) == []  # better never fails
+    worse = gate.verdict(scene, gate.summarise(_records([16.5, 16.8])), base)  # mean 16.65: 0.35 dB lower
+    assert len(worse) == 1 and worse[0].startswith("psnr 16.650 vs baseline 17.000")
+    worse = gate.verdict(scene, gate.summarise(_records([17.0, 17.0], ssim=0.48, lpips=0.42)), base)
+    assert [r.split()[0] for r in worse] == ["ssim", "lpips"]
+
+
+def test_verdict_demands_every_run_a_baseline_and_a_small_seed_spread():
+    base = {"mean": {"psnr": 17.0, "ssim": 0.5, "lpips": 0.4}}
+    summary = gate.summarise(_records([17.0, 18.0]))
+    assert summary["spread"]["psnr"] == pytest.approx(1.0) and summary["mean"]["psnr"] == pytest.approx(17.5)
+    assert gate.verdict(_scene(max_spread=0.5), summary, base) == ["seed spread 1.00 dB > 0.5"]
+    assert gate.verdict(_scene(max_spread=1.5), summary, base) == []
+    one_failed = gate.summarise([*_records([17.0]), {"status": "failed", "seed": 2}])
+    assert gate.verdict(_scene(), one_failed, base) == ["1 of 2 runs failed"]
+    assert "no baseline" in gate.verdict(_scene(), summary, None)[0]
+
+
+def _gate_files(tmp_path: Path) -> tuple:
+    """A two-scene gate over folders that exist (no training happens: the tests pre-fill the results)."""
+    for name in ("a", "b"):
+        (tmp_path / "data" / name).mkdir(parents=True)
+    scenes = {"data_root": str(tmp_path / "data"),
+              "scenes": {n: {"data": n, "parser": ["frugal-llff"], "views": {2: ["--train-views", "0", "1"]},
+                             "preset": "frugalnerf-tiny"} for n in ("a", "b")}}
+    (tmp_path / "scenes.yaml").write_text(yaml.safe_dump(scenes))
+    tol = {"psnr": 0.3, "ssim": 0.01, "lpips": 0.015}
+    (tmp_path / "gate.yaml").write_text(yaml.safe_dump({
+        "scenes_file": "scenes.yaml",
+        "scenes": {"a": {"views": 2, "seeds": [1], "tolerance": tol},
+                   "b": {"views": 2, "seeds": [1, 2], "tolerance": tol, "max_spread": 0.5}}}))
+    return tmp_path / "gate.yaml", tmp_path / "out"
+
+
+def _fill(out: Path, gate_file: Path, psnr: dict) -> None:
+    """Finished-run records for every run of the gate, as the sweep runner appends them."""
+    scenes_file, scenes = gate.load_gate(gate_file)
+    store = ResultStore(out / "results.jsonl")
+    for label, group in gate.gate_specs(scenes_file, scenes).items():
+        for spec in group:
+            store.append({**spec.to_dict(), "status": "ok", "psnr": psnr[(label, spec.seed)], "ssim": 0.5,
+                          "lpips": 0.4, "train_seconds": 60.0})
+
+
+def test_gate_command_records_a_baseline_then_passes_and_fails_on_a_regression(tmp_path, capsys):
+    gate_file, out = _gate_files(tmp_path)
+    baseline = tmp_path / "baseline.yaml"
+    _fill(out, gate_file, {("a-2v", 1): 17.0, ("b-2v", 1): 15.0, ("b-2v", 2): 15.4})
+    args = ["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out)]
+
+    assert gate.main([*args, "--record"]) == 0
+    recorded = gate.load_baseline(baseline)
+    assert recorded["scenes"]["b-2v"]["mean"]["psnr"] == pytest.approx(15.2)
+    assert recorded["scenes"]["b-2v"]["seeds"] == {1: {"psnr": 15.0, "ssim": 0.5, "lpips": 0.4},
+                                                   2: {"psnr": 15.4, "ssim": 0.5, "lpips": 0.4}}
+    assert recorded["commit"] == gate.code_version()
+
+    assert gate.main(args) == 0  # the same results against their own baseline
+    assert "passed" in capsys.readouterr().out
+    assert (out / "gate.md").read_text().count("| ok |") == 2
+
+    # The same runs, scene a now 0.5 dB lower (a new commit's results in a fresh folder).
+    out2 = tmp_path / "out2"
+    _fill(out2, gate_file, {("a-2v", 1): 16.5, ("b-2v", 1): 15.0, ("b-2v", 2): 15.4})
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out2)]) == 1
+    text = capsys.readouterr().out
+    assert "FAILED on a-2v" in text and "| a-2v | 1 | 16.50 (0.00) |" in text
+    assert "| b-2v | 1 2 | 15.20 (0.40) |" in text
+
+
+def test_gate_command_refuses_bad_files_in_one_line(tmp_path, capsys):
+    gate_file, out = _gate_files(tmp_path)
+    missing = tmp_path / "nope.yaml"
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(missing), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(missing) in err and "cannot read the baseline file" in err
+    bad = tmp_path / "bad_gate.yaml"
+    bad.write_text(yaml.safe_dump({"scenes": {"a": {"views": 2, "seeds": [1]}}}))
+    assert gate.main(["--gate", str(bad), "--list"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"frugalnerf-gate: {bad}: scene 'a' has no tolerance for psnr, ssim, lpips"
+    assert gate.main(["--gate", str(gate_file), "--scenes", "zzz", "--list"]) == 2
+    assert "no scene 'zzz'" in capsys.readouterr().err
+    assert gate.main(["--gate", str(gate_file), "--record", "--max-iterations", "5", "--out", str(out)]) == 2
+
+
+def test_code_version_names_uncommitted_changes(tmp_path):
+    import subprocess
+
+    def git(*a):
+        subprocess.run(["git", *a], cwd=tmp_path, check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "frugalnerf_ns").mkdir()
+    (tmp_path / "frugalnerf_ns" / "f.py").write_text("x = 1\n")
+    (tmp_path / "notes.md").write_text("a\n")
+    git("add", "frugalnerf_ns/f.py", "notes.md")
+    git("-c", "user.email=a@b", "-c", "user.name=a", "commit", "-qm", "c")
+    clean = gate.code_version(tmp_path)
+    assert "dirty" not in clean and len(clean) >= 7
+    (tmp_path / "notes.md").write_text("b\n")  # documentation: the same code
+    assert gate.code_version(tmp_path) == clean
+    (tmp_path / "frugalnerf_ns" / "f.py").write_text("x = 2\n")
+    dirty = gate.code_version(tmp_path)
+    assert dirty.startswith(clean + "-dirty-")
+    (tmp_path / "frugalnerf_ns" / "f.py").write_text("x = 3\n")
+    assert gate.code_version(tmp_path) != dirty
