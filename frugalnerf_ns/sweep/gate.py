@@ -171,7 +171,9 @@ def baseline_document(scenes: Sequence[GateScene], summaries: Mapping[str, Mappi
     return {"commit": commit, "recorded": datetime.date.today().isoformat(), "scenes": entries}
 
 
-TRAINING_PATHS = ("frugalnerf_ns", "configs", "pyproject.toml", "constraints.txt")
+# What a run computes depends on these; the gate's own files, docs and tests do not change it.
+TRAINING_PATHS = ("frugalnerf_ns", "configs", "pyproject.toml", "constraints.txt", ":(exclude)configs/gate*.yaml",
+                  ":(exclude)frugalnerf_ns/sweep/gate.py")
 
 
 def code_version(root: Path = ROOT) -> str:
