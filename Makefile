@@ -20,6 +20,6 @@ benchmark: setup
 	$(VENV)/bin/python scripts/benchmark_vs_tensorf.py
 
 # The quality gate (configs/gate.yaml): the CPU presets on fern, flower, horns and DTU scan65 against
-# configs/gate_baseline.yaml; exits non-zero on a regression (~1 h on 2 cores).
+# configs/gate_baseline.yaml; exits non-zero on a regression (~75 min on 2 cores).
 gate: setup
 	$(VENV)/bin/frugalnerf-gate

@@ -58,6 +58,10 @@ def test_verdict_demands_every_run_a_baseline_and_a_small_seed_spread():
     assert summary["spread"]["psnr"] == pytest.approx(1.0) and summary["mean"]["psnr"] == pytest.approx(17.5)
     assert gate.verdict(_scene(max_spread=0.5), summary, base) == ["seed spread 1.00 dB > 0.5"]
     assert gate.verdict(_scene(max_spread=1.5), summary, base) == []
+    # A spread the baseline already had is a missed target, not a regression; a wider one fails.
+    assert gate.verdict(_scene(max_spread=0.5), summary, {**base, "spread": {"psnr": 0.9}}) == []
+    assert gate.verdict(_scene(max_spread=0.5), summary, {**base, "spread": {"psnr": 0.6}}) == [
+        "seed spread 1.00 dB > 0.5 and > baseline 0.60 + 0.3"]
     one_failed = gate.summarise([*_records([17.0]), {"status": "failed", "seed": 2}])
     assert gate.verdict(_scene(), one_failed, base) == ["1 of 2 runs failed"]
     assert "no baseline" in gate.verdict(_scene(), summary, None)[0]
@@ -114,6 +118,22 @@ def test_gate_command_records_a_baseline_then_passes_and_fails_on_a_regression(t
     assert "FAILED on a-2v" in text and "| a-2v | 1 | 16.50 (0.00) |" in text
     assert "| b-2v | 1 2 | 15.20 (0.40) |" in text
 
+    # The same spread as at the baseline, over the 0.5 dB target: shown, not failed.
+    out_same = tmp_path / "out_same"
+    recorded["scenes"]["b-2v"]["spread"]["psnr"] = 0.8
+    baseline.write_text(yaml.safe_dump(recorded))
+    _fill(out_same, gate_file, {("a-2v", 1): 17.0, ("b-2v", 1): 14.8, ("b-2v", 2): 15.6})
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out_same)]) == 0
+    assert "| ok (target missed: seed spread 0.80 dB > 0.5; baseline 0.80) |" in capsys.readouterr().out
+    recorded["scenes"]["b-2v"]["spread"]["psnr"] = 0.4
+    baseline.write_text(yaml.safe_dump(recorded))
+
+    # Scene b's seeds now 0.9 dB apart: over its 0.5 dB target and 0.5 dB wider than at the baseline.
+    out3 = tmp_path / "out3"
+    _fill(out3, gate_file, {("a-2v", 1): 17.0, ("b-2v", 1): 14.8, ("b-2v", 2): 15.7})
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out3)]) == 1
+    assert "FAILED on b-2v" in capsys.readouterr().out
+
 
 def test_gate_command_refuses_bad_files_in_one_line(tmp_path, capsys):
     gate_file, out = _gate_files(tmp_path)
@@ -128,7 +148,15 @@ def test_gate_command_refuses_bad_files_in_one_line(tmp_path, capsys):
     assert err == f"frugalnerf-gate: {bad}: scene 'a' has no tolerance for psnr, ssim, lpips"
     assert gate.main(["--gate", str(gate_file), "--scenes", "zzz", "--list"]) == 2
     assert "no scene 'zzz'" in capsys.readouterr().err
-    assert gate.main(["--gate", str(gate_file), "--record", "--max-iterations", "5", "--out", str(out)]) == 2
+    scratch = tmp_path / "never_written.yaml"
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(scratch), "--record", "--max-iterations", "5",
+                      "--out", str(out)]) == 2
+    assert "--record with --max-iterations" in capsys.readouterr().err and not scratch.exists()
+    bad_views = tmp_path / "bad_views.yaml"
+    bad_views.write_text(yaml.safe_dump({"scenes": {"a": {"views": "two", "seeds": [1], "tolerance": {
+        "psnr": 0.3, "ssim": 0.01, "lpips": 0.01}}}}))
+    assert gate.main(["--gate", str(bad_views), "--list"]) == 2
+    assert "`views:` must be a positive integer, not 'two'" in capsys.readouterr().err
 
 
 def test_code_version_names_uncommitted_changes(tmp_path):
@@ -152,3 +180,14 @@ def test_code_version_names_uncommitted_changes(tmp_path):
     assert dirty.startswith(clean + "-dirty-")
     (tmp_path / "frugalnerf_ns" / "f.py").write_text("x = 3\n")
     assert gate.code_version(tmp_path) != dirty
+    (tmp_path / "frugalnerf_ns" / "f.py").write_text("x = 1\n")
+    # The gate's own files do not change what a run computes; a new, untracked module does.
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "gate.yaml").write_text("scenes: {}\n")
+    assert gate.code_version(tmp_path) == clean
+    (tmp_path / "frugalnerf_ns" / "new_loss.py").write_text("y = 1\n")
+    untracked = gate.code_version(tmp_path)
+    assert untracked.startswith(clean + "-dirty-")
+    (tmp_path / "frugalnerf_ns" / "new_loss.py").write_text("y = 2\n")
+    assert gate.code_version(tmp_path) not in (clean, untracked)
+

@@ -10,7 +10,8 @@ mean over its seeds with the recorded baseline (``configs/gate_baseline.yaml``) 
 Runs go to ``outputs/gate/<commit>`` (``<commit>-dirty-<hash of the diff>`` with uncommitted changes), so the
 same code resumes its own runs and never reuses another commit's. A scene fails when its mean PSNR or SSIM
 falls below the baseline's by more than the tolerance, or its LPIPS rises above it by more, or when its seeds
-spread more than the scene's ``max_spread`` (dB).
+spread more than the scene's ``max_spread`` (dB) and more than the baseline's spread plus the PSNR tolerance
+(a spread within that is shown as a missed target, not a regression).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ class GateScene:
     views: int
     seeds: List[int]
     tolerance: Dict[str, float]  # metric -> allowed worsening of the mean
-    max_spread: Optional[float] = None  # dB between the best and worst seed, where the gate demands it
+    max_spread: Optional[float] = None  # target dB between the best and worst seed (scenes run with several)
 
     @property
     def label(self) -> str:
@@ -64,6 +65,14 @@ def _read_yaml(path: Path, what: str) -> Dict[str, Any]:
     return data
 
 
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def load_gate(path: Path = GATE_FILE) -> tuple:
     """(scenes file, [GateScene]) of a gate file."""
     gate = _read_yaml(path, "gate file")
@@ -73,15 +82,24 @@ def load_gate(path: Path = GATE_FILE) -> tuple:
     out = []
     for name, entry in scenes.items():
         entry = entry or {}
+        if not isinstance(entry, dict):
+            raise GateError(f"{path}: scene {name!r} must map views / seeds / tolerance to values")
         seeds = entry.get("seeds")
-        if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) for s in seeds):
+        if not isinstance(seeds, list) or not seeds or not all(_is_int(s) for s in seeds):
             raise GateError(f"{path}: scene {name!r} needs `seeds:`, a list of integers")
         tolerance = entry.get("tolerance") or {}
-        missing = [m for m in METRICS if not isinstance(tolerance.get(m), (int, float))]
+        if not isinstance(tolerance, dict):
+            raise GateError(f"{path}: scene {name!r}: `tolerance:` must map psnr / ssim / lpips to numbers")
+        missing = [m for m in METRICS if not _is_number(tolerance.get(m))]
         if missing:
             raise GateError(f"{path}: scene {name!r} has no tolerance for {', '.join(missing)}")
-        out.append(GateScene(str(name), int(entry.get("views", 2)), list(seeds),
-                             {m: float(tolerance[m]) for m in METRICS}, entry.get("max_spread")))
+        views, max_spread = entry.get("views", 2), entry.get("max_spread")
+        if not _is_int(views) or views < 1:
+            raise GateError(f"{path}: scene {name!r}: `views:` must be a positive integer, not {views!r}")
+        if max_spread is not None and not _is_number(max_spread):
+            raise GateError(f"{path}: scene {name!r}: `max_spread:` must be a number of dB, not {max_spread!r}")
+        out.append(GateScene(str(name), int(views), list(seeds), {m: float(tolerance[m]) for m in METRICS},
+                             None if max_spread is None else float(max_spread)))
     scenes_file = (Path(path).parent / gate.get("scenes_file", "benchmark_scenes.yaml")).resolve()
     return scenes_file, out
 
@@ -101,8 +119,10 @@ def load_baseline(path: Path = BASELINE_FILE) -> Dict[str, Any]:
     if not isinstance(baseline.get("scenes"), dict):
         raise GateError(f"{path}: no `scenes:` section (write one with `frugalnerf-gate --record`)")
     for label, entry in baseline["scenes"].items():
-        mean = (entry or {}).get("mean") or {}
-        missing = [m for m in METRICS if not isinstance(mean.get(m), (int, float))]
+        if not isinstance(entry, dict) or not isinstance(entry.get("mean"), dict):
+            raise GateError(f"{path}: scene {label!r} has no `mean:` mapping")
+        mean = entry["mean"]
+        missing = [m for m in METRICS if not _is_number(mean.get(m))]
         if missing:
             raise GateError(f"{path}: scene {label!r} has no mean {', '.join(missing)}")
     return baseline
@@ -134,8 +154,12 @@ def verdict(scene: GateScene, summary: Mapping[str, Any], baseline: Optional[Map
         worse = (old - new) if HIGHER_IS_BETTER[metric] else (new - old)
         if worse > tol:
             reasons.append(f"{metric} {new:.3f} vs baseline {old:.3f} (worse by {worse:.3f} > {tol:g})")
-    if scene.max_spread is not None and summary["spread"]["psnr"] > scene.max_spread:
-        reasons.append(f"seed spread {summary['spread']['psnr']:.2f} dB > {scene.max_spread:g}")
+    spread = summary["spread"]["psnr"]
+    if scene.max_spread is not None and spread > scene.max_spread:
+        before = (baseline.get("spread") or {}).get("psnr")
+        if before is None or spread > max(float(before) + scene.tolerance["psnr"], scene.max_spread):
+            reasons.append(f"seed spread {spread:.2f} dB > {scene.max_spread:g}"
+                           + (f" and > baseline {float(before):.2f} + {scene.tolerance['psnr']:g}" if before is not None else ""))
     return reasons
 
 
@@ -155,6 +179,11 @@ def table(scenes: Sequence[GateScene], summaries: Mapping[str, Mapping[str, Any]
                   if base else "-")
         tol = f"{s.tolerance['psnr']:g} / {s.tolerance['ssim']:g} / {s.tolerance['lpips']:g}"
         result = "FAIL: " + "; ".join(failures[s.label]) if failures.get(s.label) else "ok"
+        if not failures.get(s.label) and s.max_spread is not None and summary.get("runs") \
+                and summary["spread"]["psnr"] > s.max_spread:
+            before = ((base or {}).get("spread") or {}).get("psnr")
+            result += (f" (target missed: seed spread {summary['spread']['psnr']:.2f} dB > {s.max_spread:g}"
+                       + (f"; baseline {float(before):.2f})" if before is not None else ")"))
         lines.append(f"| {s.label} | {' '.join(map(str, s.seeds))} | {ours} | {theirs} | {tol} | {result} |")
     return "\n".join(lines)
 
@@ -184,7 +213,13 @@ def code_version(root: Path = ROOT) -> str:
 
     try:
         commit = git("rev-parse", "--short", "HEAD").strip() or "unknown"
-        diff = git("diff", "HEAD", "--", *TRAINING_PATHS)
+        diff = git("diff", "--binary", "HEAD", "--", *TRAINING_PATHS)
+        # New files git does not track yet (and does not ignore) change the code as much as edits do.
+        for name in sorted(git("ls-files", "--others", "--exclude-standard", "--", *TRAINING_PATHS).splitlines()):
+            try:
+                diff += f"\nnew file {name}\n" + hashlib.sha1((Path(root) / name).read_bytes()).hexdigest()
+            except OSError:
+                diff += f"\nnew file {name} (unreadable)\n"
     except (OSError, subprocess.TimeoutExpired):
         return "unknown"
     return f"{commit}-dirty-{hashlib.sha1(diff.encode()).hexdigest()[:8]}" if diff else commit
@@ -216,7 +251,14 @@ def main(argv: Optional[List[str]] = None) -> int:
                 raise GateError(f"{args.gate}: no scene {unknown[0]!r} (it has {', '.join(s.label for s in scenes)})")
             scenes = [s for s in scenes if s.label in args.scenes or s.name in args.scenes]
         specs = gate_specs(scenes_file, scenes, args.data_root, args.max_iterations)
-        baseline = load_baseline(args.baseline) if not args.list and (not args.record or args.baseline.exists()) else {}
+        baseline = {}
+        if args.record and args.baseline.exists():
+            try:  # scenes this run does not record keep their entries; an unreadable file is replaced
+                baseline = load_baseline(args.baseline)
+            except GateError as err:
+                print(f"frugalnerf-gate: replacing the unreadable baseline: {err}", file=sys.stderr)
+        elif not args.record and not args.list:
+            baseline = load_baseline(args.baseline)
     except GateError as err:
         print(f"frugalnerf-gate: {err}", file=sys.stderr)
         return 2
@@ -228,10 +270,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     out = (args.out or ROOT / "outputs" / "gate" / version).resolve()
     every = [spec for group in specs.values() for spec in group]
     if args.list:
-        todo = set(ResultStore(out / "results.jsonl").to_run([s.key for s in every]))
+        latest = ResultStore(out / "results.jsonl").latest([s.key for s in every])
         for label, group in specs.items():
             for spec in group:
-                print(f"{label} seed {spec.seed}: {'todo' if spec.key in todo else 'done'} ({spec.key})")
+                status = latest.get(spec.key, {}).get("status")
+                state = "done" if status == "ok" else "failed before" if status else "todo"
+                print(f"{label} seed {spec.seed}: {state} ({spec.key})")
         print(f"runs folder: {out}")
         return 0
     missing = sorted({s.data for s in every if not Path(s.data).is_dir()})
