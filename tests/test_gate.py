@@ -90,7 +90,7 @@ def _fill(out: Path, gate_file: Path, psnr: dict) -> None:
     for label, group in gate.gate_specs(scenes_file, scenes).items():
         for spec in group:
             store.append({**spec.to_dict(), "status": "ok", "psnr": psnr[(label, spec.seed)], "ssim": 0.5,
-                          "lpips": 0.4, "train_seconds": 60.0})
+                          "lpips": 0.4, "train_seconds": 60.0, "commit": "c0ffee1"})
 
 
 def test_gate_command_records_a_baseline_then_passes_and_fails_on_a_regression(tmp_path, capsys):
@@ -104,7 +104,8 @@ def test_gate_command_records_a_baseline_then_passes_and_fails_on_a_regression(t
     assert recorded["scenes"]["b-2v"]["mean"]["psnr"] == pytest.approx(15.2)
     assert recorded["scenes"]["b-2v"]["seeds"] == {1: {"psnr": 15.0, "ssim": 0.5, "lpips": 0.4},
                                                    2: {"psnr": 15.4, "ssim": 0.5, "lpips": 0.4}}
-    assert recorded["commit"] == gate.code_version()
+    assert recorded["commit"] == "c0ffee1"  # the commit the runs trained at, from their records
+    assert recorded["scenes"]["a-2v"]["commit"] == "c0ffee1"
 
     assert gate.main(args) == 0  # the same results against their own baseline
     assert "passed" in capsys.readouterr().out

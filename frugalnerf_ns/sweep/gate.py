@@ -297,11 +297,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         if broken:
             print(f"frugalnerf-gate: not recording: runs failed on {', '.join(broken)}", file=sys.stderr)
             return 1
-        document = baseline_document(scenes, summaries, version, baseline)
+        # The commit the runs were trained at (a resumed or --out folder may hold another commit's runs).
+        trained_at = sorted({str(records[spec.key].get("commit") or version) for spec in every if spec.key in records})
+        document = baseline_document(scenes, summaries, "+".join(trained_at) or version, baseline)
         header = ("# Quality gate baseline: each scene's mean over its seeds, written by `frugalnerf-gate --record`.\n"
                   "# Update it only in a commit that means to move the numbers, and say why there.\n")
         args.baseline.write_text(header + yaml.safe_dump(document, sort_keys=False))
-        print(f"\nfrugalnerf-gate: recorded the baseline of {version} in {args.baseline}")
+        print(f"\nfrugalnerf-gate: recorded the baseline of {document['commit']} in {args.baseline}")
         return 0
     failed = [label for label, reasons in failures.items() if reasons]
     print(f"\nfrugalnerf-gate: {'FAILED on ' + ', '.join(failed) if failed else 'passed'} ({out / 'gate.md'})")
