@@ -192,3 +192,30 @@ def test_code_version_names_uncommitted_changes(tmp_path):
     (tmp_path / "frugalnerf_ns" / "new_loss.py").write_text("y = 2\n")
     assert gate.code_version(tmp_path) not in (clean, untracked)
 
+
+
+# Gate scenes whose baseline is still to be recorded (`frugalnerf-gate --scenes dtu_scan65 --record`, ~25 min):
+# the session that built the gate ran out of time before DTU's run. Remove a scene here when it is recorded.
+NOT_YET_RECORDED = {"dtu_scan65-2v"}
+
+
+def test_committed_baseline_covers_the_gate_scenes_with_all_their_seeds():
+    """The baseline in the repository names its commit and has every scene of the gate (but the ones listed as
+    not yet recorded) with all its seeds and means that match them."""
+    path = ROOT / "configs" / "gate_baseline.yaml"
+    if not path.exists():
+        pytest.fail("configs/gate_baseline.yaml is missing: record it with `frugalnerf-gate --record`")
+    baseline = gate.load_baseline(path)
+    _, scenes = gate.load_gate(ROOT / "configs" / "gate.yaml")
+    assert baseline["commit"]
+    assert {s.label for s in scenes} - set(baseline["scenes"]) == NOT_YET_RECORDED
+    for scene in scenes:
+        if scene.label in NOT_YET_RECORDED:
+            continue
+        entry = baseline["scenes"][scene.label]
+        if scene.max_spread is not None:  # the spread rule compares with the baseline's spread
+            assert isinstance(entry["spread"]["psnr"], float), scene.label
+        assert sorted(entry["seeds"]) == sorted(scene.seeds), scene.label
+        for metric in gate.METRICS:
+            values = [entry["seeds"][seed][metric] for seed in scene.seeds]
+            assert entry["mean"][metric] == pytest.approx(sum(values) / len(values), abs=1e-3), (scene.label, metric)
