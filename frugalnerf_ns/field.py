@@ -7,7 +7,7 @@ basis matrix and one colour MLP are shared by all scales, so adding scales adds 
 from __future__ import annotations
 
 import math
-from typing import List, Literal, Sequence, Tuple
+from typing import List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -15,7 +15,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor, nn
 
 from frugalnerf_ns.color_mlp import ColorMLP, MLPImplementation
-from frugalnerf_ns.tensorial import TensorVMGrid
+from frugalnerf_ns.tensorial import OptimizerState, TensorVMGrid
 
 DensityActivation = Literal["relu", "softplus"]
 
@@ -135,9 +135,10 @@ class FrugalNeRFField(nn.Module):
         return self.color_mlp(features, directions)
 
     # ---- schedules (called from training callbacks) ---------------------------------------------------
-    def upsample(self, resolution: Sequence[int]) -> None:
-        self.density_grid.resample(resolution)
-        self.appearance_grid.resample(resolution)
+    def upsample(self, resolution: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:
+        """Resample both grids (and, given the grid optimiser's state, its moments: ``TensorialGrid.resample``)."""
+        self.density_grid.resample(resolution, optimizer_state)
+        self.appearance_grid.resample(resolution, optimizer_state)
 
     @torch.no_grad()
     def update_alpha_mask(
@@ -164,8 +165,9 @@ class FrugalNeRFField(nn.Module):
         return torch.stack([occupied.amin(dim=0), occupied.amax(dim=0)])
 
     @torch.no_grad()
-    def shrink(self, new_aabb: Float[Tensor, "2 3"]) -> None:
-        """Crop both grids to the voxels covering ``new_aabb``; the box snaps to the kept voxels."""
+    def shrink(self, new_aabb: Float[Tensor, "2 3"], optimizer_state: Optional[OptimizerState] = None) -> None:
+        """Crop both grids (and the optimiser's moments) to the voxels covering ``new_aabb``; the box snaps to
+        the kept voxels."""
         res = self.density_grid.resolution.to(self.aabb)
         units = self.voxel_size()
         lower = ((new_aabb[0] - self.aabb[0]) / units).floor().clamp_min(0)
@@ -175,8 +177,8 @@ class FrugalNeRFField(nn.Module):
         upper = torch.maximum(upper, torch.minimum(lower + 1, res - 1))
         lower = torch.minimum(lower, upper - 1).clamp_min(0)
         lo, hi = lower.long().tolist(), upper.long().tolist()
-        self.density_grid.crop(lo, hi)
-        self.appearance_grid.crop(lo, hi)
+        self.density_grid.crop(lo, hi, optimizer_state)
+        self.appearance_grid.crop(lo, hi, optimizer_state)
         self.aabb = torch.stack([self.aabb[0] + lower * units, self.aabb[0] + upper * units])
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: D401

@@ -42,6 +42,7 @@ from frugalnerf_ns.objective import ReferenceViews
 from frugalnerf_ns.raymarch import intersect_aabb
 from frugalnerf_ns.rendering import StepRender, render_scale, scale_suffix
 from frugalnerf_ns.scene_analysis import grid_side_for_pixels
+from frugalnerf_ns.tensorial import OptimizerState
 
 class FrugalNeRFModel(Model):
     """Weight-sharing multi-scale tensorial radiance field."""
@@ -146,6 +147,13 @@ class FrugalNeRFModel(Model):
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
 
+    def _carried_grid_state(self, attributes: TrainingCallbackAttributes) -> Optional[OptimizerState]:
+        """The grid optimiser's state, for the resize to carry over (``carry_optimizer_state``); else None."""
+        if not self.config.carry_optimizer_state or attributes.optimizers is None:
+            return None
+        optimizer = attributes.optimizers.optimizers.get("encodings")
+        return None if optimizer is None else optimizer.state
+
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         length = schedule_length(training_callback_attributes)
         upsample_steps = steps_at(self.config.upsample_at, length)
@@ -155,8 +163,9 @@ class FrugalNeRFModel(Model):
             # Fractions that round to the same step (a very short run) upsample once, to the later size.
             voxels = self.upsample_voxels[max(i for i, s in enumerate(upsample_steps) if s == step)]
             box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
-            self.field.upsample(resolution_for_voxels(voxels, box))
-            _restart_grid_optimizer(training_callback_attributes)
+            state = self._carried_grid_state(training_callback_attributes)
+            self.field.upsample(resolution_for_voxels(voxels, box), state)
+            _restart_grid_optimizer(training_callback_attributes, state)
 
         def update_alpha_mask(step: int) -> None:
             occupied_box = self.field.update_alpha_mask(
@@ -165,10 +174,11 @@ class FrugalNeRFModel(Model):
             if step == alpha_mask_steps[0]:
                 # Keep the voxel count while the box shrinks: the freed voxels refine the occupied region.
                 voxels = int(self.field.density_grid.resolution.prod())
-                self.field.shrink(occupied_box)
+                state = self._carried_grid_state(training_callback_attributes)
+                self.field.shrink(occupied_box, state)
                 box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
-                self.field.upsample(resolution_for_voxels(voxels, box))
-                _restart_grid_optimizer(training_callback_attributes)
+                self.field.upsample(resolution_for_voxels(voxels, box), state)
+                _restart_grid_optimizer(training_callback_attributes, state)
 
         def record_scale_fractions(step: int) -> None:
             stats = getattr(self, "_last_scale_stats", None)
@@ -402,14 +412,19 @@ def steps_at(fractions: Tuple[float, ...], length: Optional[int]) -> List[int]:
     return [min(length - 1, max(1, round(f * length))) for f in fractions]
 
 
-def _restart_grid_optimizer(attributes: TrainingCallbackAttributes) -> None:
-    """Recreate the grid optimiser (its state no longer matches the resized tensors); its lr restarts."""
+def _restart_grid_optimizer(attributes: TrainingCallbackAttributes, carried: Optional[OptimizerState] = None) -> None:
+    """Recreate the grid optimiser for the resized tensors; its lr restarts. ``carried``: the old optimiser's
+    state re-keyed to the new tensors (``_carried_grid_state``), which the new one continues from."""
     optimizers, pipeline = attributes.optimizers, attributes.pipeline
     if optimizers is None or pipeline is None:
         return
     config = optimizers.config["encodings"]
     params = pipeline.get_param_groups()["encodings"]
     optimizers.optimizers["encodings"] = config["optimizer"].setup(params=params)
+    if carried:
+        for param in params:
+            if param in carried:
+                optimizers.optimizers["encodings"].state[param] = carried[param]
     optimizers.parameters["encodings"] = params
     if config.get("scheduler"):
         optimizers.schedulers["encodings"] = (

@@ -42,6 +42,10 @@ class FrugalNeRFModelConfig(ModelConfig):
     """When the grid is upsampled (log-linear in voxel count), as fractions of the schedule (--schedule-steps,
     by default the run's iterations: the paper's steps 500, 1000, ..., 3000 of 5000); the grid optimiser
     restarts."""
+    carry_optimizer_state: bool = False
+    """At each upsampling (and shrink) resample the grid optimiser's Adam moments with the grid and continue
+    from them. Off (the reference code): a fresh Adam, whose first steps move every grid entry with any
+    gradient by about the learning rate (Adam's first step is lr * sign(gradient))."""
     alpha_mask_at: Tuple[float, ...] = (0.2, 0.4)
     """When the occupancy (alpha) mask is recomputed, as fractions of the schedule (paper: steps 1000 and 2000
     of 5000); the box shrinks to it the first time."""

@@ -12,7 +12,7 @@ full-resolution entries. The paper's ablation prefers this nearest (strided) dow
 from __future__ import annotations
 
 import math
-from typing import List, Sequence, Tuple
+from typing import Any, Callable, Dict, List, MutableMapping, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -23,6 +23,8 @@ from torch import Tensor, nn
 PLANE_AXES: Tuple[Tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2))
 #: the axis each plane's partner line runs along (the one the plane does not span).
 LINE_AXES: Tuple[int, ...] = (2, 1, 0)
+#: an optimiser's per-parameter state (``torch.optim.Optimizer.state``).
+OptimizerState = MutableMapping[nn.Parameter, Dict[str, Any]]
 
 
 def strided_length(resolution: int, stride: int) -> int:
@@ -144,29 +146,29 @@ class TensorVMGrid(nn.Module):
         return products
 
     @torch.no_grad()
-    def resample(self, resolution: Sequence[int]) -> None:
+    def resample(self, resolution: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:
         """Resample every plane and line to a new resolution (bilinear / linear, corners aligned).
 
         The tensors are replaced by new Parameters (autograd caches a leaf's shape, so resizing one in place
-        breaks the next backward); the caller must recreate the optimiser.
+        breaks the next backward); the caller must recreate the optimiser. ``optimizer_state`` (an optimiser's
+        ``state``, keyed by parameter) gets the same resampling of each old tensor's moments, keyed by the new
+        one, so the new optimiser can continue from them.
         """
         for i, ((a, b), line_axis) in enumerate(zip(PLANE_AXES, LINE_AXES)):
-            self.planes[i] = nn.Parameter(
-                F.interpolate(self.planes[i].data, size=(resolution[b], resolution[a]), mode="bilinear", align_corners=True)
-            )
-            self.lines[i] = nn.Parameter(
-                F.interpolate(self.lines[i].data, size=(resolution[line_axis], 1), mode="bilinear", align_corners=True)
-            )
+            plane_size, line_size = (resolution[b], resolution[a]), (resolution[line_axis], 1)
+            self.planes[i] = _replaced(self.planes[i], lambda t, size=plane_size: _interpolated(t, size), optimizer_state)
+            self.lines[i] = _replaced(self.lines[i], lambda t, size=line_size: _interpolated(t, size), optimizer_state)
         self.resolution.copy_(torch.tensor([int(r) for r in resolution]))
 
     @torch.no_grad()
-    def crop(self, lower: Sequence[int], upper: Sequence[int]) -> None:
-        """Keep entries lower[i]..upper[i] (inclusive) along each axis (new Parameters, as in ``resample``)."""
+    def crop(self, lower: Sequence[int], upper: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:
+        """Keep entries lower[i]..upper[i] (inclusive) along each axis (new Parameters and moments, as in
+        ``resample``)."""
         for i, ((a, b), line_axis) in enumerate(zip(PLANE_AXES, LINE_AXES)):
-            plane = self.planes[i].data[:, :, lower[b] : upper[b] + 1, lower[a] : upper[a] + 1]
-            self.planes[i] = nn.Parameter(plane.contiguous())
-            line = self.lines[i].data[:, :, lower[line_axis] : upper[line_axis] + 1, :]
-            self.lines[i] = nn.Parameter(line.contiguous())
+            rows, cols = slice(lower[b], upper[b] + 1), slice(lower[a], upper[a] + 1)
+            self.planes[i] = _replaced(self.planes[i], lambda t, r=rows, c=cols: t[:, :, r, c].contiguous(), optimizer_state)
+            entries = slice(lower[line_axis], upper[line_axis] + 1)
+            self.lines[i] = _replaced(self.lines[i], lambda t, e=entries: t[:, :, e, :].contiguous(), optimizer_state)
         self.resolution.copy_(torch.tensor([int(u) - int(lo) + 1 for lo, u in zip(lower, upper)]))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: D401
@@ -181,3 +183,16 @@ class TensorVMGrid(nn.Module):
                     param.data = torch.empty(saved.shape, dtype=param.dtype, device=param.device)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
+
+def _interpolated(tensor: Tensor, size: Tuple[int, int]) -> Tensor:
+    return F.interpolate(tensor, size=size, mode="bilinear", align_corners=True)
+
+
+def _replaced(param: nn.Parameter, transform: Callable[[Tensor], Tensor], state: Optional[OptimizerState]) -> nn.Parameter:
+    """A new Parameter holding ``transform(param)``; the optimiser state of ``param`` moves to it, each
+    tensor of the parameter's shape (Adam's moments) transformed the same way, the rest (the step) kept."""
+    new = nn.Parameter(transform(param.data))
+    if state is not None and param in state:
+        old = state.pop(param)
+        state[new] = {k: transform(v) if torch.is_tensor(v) and v.shape == param.shape else v for k, v in old.items()}
+    return new

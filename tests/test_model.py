@@ -125,14 +125,15 @@ def test_rgba_targets_are_composited_on_the_render_background():
     assert torch.allclose(objective.target_rgb(image, torch.ones(3)), torch.tensor([[1.0, 0.5, 0.5]]))
 
 
-def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser():
+@pytest.mark.parametrize("carry", [False, True])
+def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry):
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
     from frugalnerf_ns.presets import AdamBetasOptimizerConfig
 
-    model = tiny_model()
+    model = tiny_model(carry_optimizer_state=carry)
     pipeline = SimpleNamespace(get_param_groups=model.get_param_groups)
     opt_config = {
         name: {"optimizer": AdamBetasOptimizerConfig(lr=0.01), "scheduler": ExponentialDecaySchedulerConfig(max_steps=10)}
@@ -156,6 +157,11 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser():
             # The optimiser now holds the new tensors (a stale one would skip or break the step).
             held = {id(p) for g in optimizers.optimizers["encodings"].param_groups for p in g["params"]}
             assert held == {id(p) for p in model.field.grid_parameters()}
+            # Carried: the new optimiser continues from the old one's moments (its step count goes on);
+            # fresh: it starts empty.
+            state = optimizers.optimizers["encodings"].state
+            steps = {int(state[p]["step"]) for p in model.field.grid_parameters() if p in state}
+            assert steps == ({step} if carry else set())
     end = model.field.density_grid.resolution_tuple
     assert math.prod(end) > math.prod(start)
     assert model.field.alpha_mask.numel() > 0

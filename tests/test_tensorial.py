@@ -2,6 +2,7 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from frugalnerf_ns.field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.tensorial import TensorVMGrid, coords_for_stride, strided_length
@@ -78,6 +79,64 @@ def test_crop_keeps_values_inside_the_kept_region():
     grid.crop((2, 3, 1), (8, 9, 10))
     assert grid.resolution_tuple == (7, 7, 10)
     torch.testing.assert_close(grid.planes[0].detach(), full_plane[:, :, 3:10, 2:9])
+
+
+def _adam_state_after_steps(grid, steps=3):
+    optimizer = torch.optim.Adam(grid.parameters(), lr=0.01)
+    coords = torch.rand(200, 3) * 2 - 1
+    for _ in range(steps):
+        optimizer.zero_grad()
+        sum(p.square().sum() for p in grid.plane_line_products(coords)).backward()
+        optimizer.step()
+    return optimizer
+
+
+def test_resample_and_crop_carry_the_optimiser_moments_to_the_new_tensors():
+    torch.manual_seed(0)
+    grid = TensorVMGrid((9, 7, 5), (3, 2, 2))
+    optimizer = _adam_state_after_steps(grid)
+    old_plane, old_line = grid.planes[0], grid.lines[2]
+    plane_moments = {k: v.clone() for k, v in optimizer.state[old_plane].items()}
+    line_sq = optimizer.state[old_line]["exp_avg_sq"].clone()
+    grid.resample((17, 13, 9), optimizer.state)
+    new_plane, new_line = grid.planes[0], grid.lines[2]
+    assert old_plane not in optimizer.state and new_plane in optimizer.state
+    carried = optimizer.state[new_plane]
+    # The moments are resampled exactly as the values were (plane 0 spans x (width) and y (height)).
+    expected = F.interpolate(plane_moments["exp_avg"], size=(13, 17), mode="bilinear", align_corners=True)
+    torch.testing.assert_close(carried["exp_avg"], expected)
+    assert carried["exp_avg_sq"].shape == new_plane.shape and (carried["exp_avg_sq"] >= 0).all()
+    assert torch.equal(carried["step"], plane_moments["step"])  # bias correction continues, not restarts
+    # line 2 runs along x: 9 -> 17 entries; refinement by 2 keeps every old entry at the even positions.
+    torch.testing.assert_close(optimizer.state[new_line]["exp_avg_sq"][:, :, ::2], line_sq)
+    grid.crop((2, 3, 1), (8, 9, 7), optimizer.state)
+    torch.testing.assert_close(optimizer.state[grid.planes[0]]["exp_avg"], expected[:, :, 3:10, 2:9])
+    assert len(optimizer.state) == 6  # every tensor's state moved; none left behind under an old key
+
+
+def test_a_carried_adam_continues_where_a_fresh_one_jumps():
+    """A fresh Adam's first step moves every entry with a gradient by ~lr (lr * sign); one continuing from
+    the carried moments moves them by what the history says (a few times less here)."""
+    torch.manual_seed(0)
+    coords = torch.rand(200, 3) * 2 - 1
+    moves = {}
+    for carry in (False, True):
+        torch.manual_seed(1)
+        grid = TensorVMGrid((9, 7, 5), (3, 2, 2))
+        optimizer = _adam_state_after_steps(grid, steps=20)
+        grid.resample((17, 13, 9), optimizer.state if carry else None)
+        fresh = torch.optim.Adam(grid.parameters(), lr=0.01)
+        if carry:
+            for p in grid.parameters():
+                fresh.state[p] = optimizer.state[p]
+        before = [p.detach().clone() for p in grid.parameters()]
+        fresh.zero_grad()
+        sum(p.square().sum() for p in grid.plane_line_products(coords)).backward()
+        fresh.step()
+        moves[carry] = torch.cat([(p.detach() - b).abs().flatten() for p, b in zip(grid.parameters(), before)])
+    touched = moves[False] > 0
+    assert moves[False][touched].median() == pytest.approx(0.01, rel=0.01)
+    assert moves[True][touched].median() < 0.5 * moves[False][touched].median()
 
 
 def test_state_dict_loads_into_a_grid_of_another_resolution():
