@@ -7,6 +7,9 @@
   completed step when it is newer than the last checkpoint.
 - A start that fails before training (bad data, bad options) removes the run folder when it holds nothing
   but the config.yml nerfstudio wrote before setting up.
+- Ctrl-C or SIGTERM (a cluster's preemption) during training finishes the step under way, saves the steps done
+  (atomically, as every checkpoint) and exits non-zero (130 / 143, the shells' codes for those signals) with
+  one line naming the checkpoint folder and how to resume; a second Ctrl-C exits at once.
 
 ``--max-num-iterations`` keeps nerfstudio's meaning (steps to run in this invocation, also when resuming);
 every schedule (learning rate, loss weights, upsampling, alpha mask) follows the absolute step, so a
@@ -15,12 +18,16 @@ resumed run continues exactly where the interrupted one was.
 
 from __future__ import annotations
 
+import os
 import re
+import signal
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Literal, Optional, Tuple, Type
+from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import torch
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -110,6 +117,8 @@ class FrugalTrainer(Trainer):
             config.machine.device_type = "cpu"
         super().__init__(config, local_rank, world_size)
         self.last_saved_step = -1  # the newest step whose state is on disk (saved or loaded)
+        self.completed_step = -1  # the newest step whose iteration and callbacks have run
+        self.interrupted_by: Optional[int] = None  # the signal that asked the run to stop
 
     def setup(self, test_mode: Literal["test", "val", "inference"] = "val") -> None:
         try:
@@ -123,6 +132,9 @@ class FrugalTrainer(Trainer):
                     if group.get("scheduler") is not None and hasattr(group["scheduler"], "max_steps"):
                         group["scheduler"].max_steps = self.schedule_steps
                 super().setup(test_mode)
+            # Last of the step's callbacks (after the model's upsampling and alpha mask): from here on a
+            # checkpoint of this step holds what nerfstudio's own save at this step would.
+            self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._mark_completed))
         except BaseException:
             # nerfstudio wrote config.yml before calling us: a run that never started leaves no folder.
             remove_config_only_run_folder(self.base_dir, Path(self.config.output_dir))
@@ -172,13 +184,65 @@ class FrugalTrainer(Trainer):
         if "schedulers" in state and cfg.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])
         self.grad_scaler.load_state_dict(state["scalers"])
-        self.last_saved_step = state["step"]
+        self.last_saved_step = self.completed_step = state["step"]
         CONSOLE.print(f"Done loading Nerfstudio checkpoint from {path}")
 
     # ---- training ---------------------------------------------------------------------------------------
     def train(self) -> None:
-        with one_line_errors():  # out of memory, a checkpoint that cannot be written
-            super().train()
+        previous = self._catch_stop_signals()
+        try:
+            with one_line_errors():  # out of memory, a checkpoint that cannot be written
+                super().train()
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+
+    def _mark_completed(self, step: int) -> None:
+        self.completed_step = step
+
+    def _catch_stop_signals(self) -> Dict[int, Any]:
+        """Handle SIGINT and SIGTERM by asking the loop to stop after the step under way (nerfstudio's
+        ``stop_training``); returns the handlers they replaced. Only the main thread may install them."""
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return {}
+
+        def stop(signum: int, _frame: Any) -> None:
+            if self.interrupted_by is not None and signum == signal.SIGINT:
+                # The second Ctrl-C: exit now. Checkpoints are written to a staging file and renamed, so the
+                # newest one on disk stays whole even if this lands during a save.
+                print(f"frugalnerf: quit at once; the last checkpoint (step {self.last_saved_step}) is in {self.checkpoint_dir}",
+                      file=sys.stderr, flush=True)
+                os._exit(128 + signum)
+            self.interrupted_by = signum
+            self.stop_training = True
+            CONSOLE.print(f"frugalnerf: {signal.Signals(signum).name}: saving after step {self.step} (Ctrl-C again to quit at once)")
+
+        stop_signals: List[int] = [signal.SIGINT, signal.SIGTERM]
+        return {signum: signal.signal(signum, stop) for signum in stop_signals}
+
+    def _after_train(self) -> None:
+        if self.interrupted_by is None:
+            super()._after_train()
+            return
+        from nerfstudio.utils import writer
+
+        # nerfstudio's loop breaks at the top of the step after the signal, so ``self.step`` was never trained.
+        step = self.completed_step
+        if step > self.last_saved_step:
+            self.save_checkpoint(step)
+        writer.write_out_storage()
+        self.shutdown()  # the viewer's server, so the process can end
+        name = signal.Signals(self.interrupted_by).name
+        if step < 0:
+            print(f"frugalnerf: {name} before the first step ended: nothing to save", file=sys.stderr)
+        else:
+            print(
+                f"frugalnerf: stopped by {name} after step {step}: saved in {self.checkpoint_dir}; resume with the same "
+                f"command and --load-dir {self.checkpoint_dir}", file=sys.stderr,
+            )
+        raise SystemExit(128 + self.interrupted_by)
 
     def train_iteration(self, step: int):
         try:
