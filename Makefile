@@ -2,7 +2,7 @@
 # when it is missing or was built from other pins.
 VENV := .venv
 
-.PHONY: setup demo test test-slow benchmark gate
+.PHONY: setup demo test test-slow lint benchmark gate
 
 setup:
 	@bash scripts/setup_venv.sh
@@ -11,7 +11,11 @@ demo: setup
 	$(VENV)/bin/frugalnerf-demo
 
 test: setup
-	$(VENV)/bin/python -m pytest -q
+	$(VENV)/bin/python -m pytest -q --durations=15
+
+# Pyflakes' checks (undefined names, unused imports), clean on the whole tree; CI runs it.
+lint: setup
+	$(VENV)/bin/ruff check .
 
 test-slow: setup
 	$(VENV)/bin/python -m pytest -q -m slow

@@ -28,15 +28,15 @@ class TrainBatch:
     """(view, row, column) of each training ray."""
     patch_size: int
     """k of the k x k training patches."""
-    nearest_view: Int[Tensor, "warped_rays"]
+    nearest_view: Int[Tensor, " warped_rays"]
     """Training view each training and novel ray is warped into (-1: none)."""
     num_novel: int = 0
     """Novel-view rays after the training rays (a multiple of 4: 2x2 patches)."""
     novel_indices: Optional[Int[Tensor, "novel_rays 3"]] = None
     """(pose, row, column) of each novel ray on the spiral."""
-    sparse_depth: Optional[Float[Tensor, "sparse_rays"]] = None
+    sparse_depth: Optional[Float[Tensor, " sparse_rays"]] = None
     """Metric depth each sparse-point ray should render (None: no sparse-depth rays this step)."""
-    mono_depth: Optional[Float[Tensor, "train_rays"]] = None
+    mono_depth: Optional[Float[Tensor, " train_rays"]] = None
     """Monocular depth prediction at each training ray (None: no depth prior)."""
 
     @property

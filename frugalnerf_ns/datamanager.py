@@ -123,9 +123,9 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
     train_images: Float[Tensor, "views height width channels"]
     warp_images: Float[Tensor, "views height width 3"]
     warp_intrinsics: Float[Tensor, "views 4"]
-    train_nearest_view: Int[Tensor, "views"]
+    train_nearest_view: Int[Tensor, " views"]
     novel_cameras: Optional[Cameras] = None
-    novel_nearest_view: Optional[Int[Tensor, "poses"]] = None
+    novel_nearest_view: Optional[Int[Tensor, " poses"]] = None
     novel_path: str = "spiral"
     """Which path the novel poses follow: "spiral" (the paper's) or "orbit" (objects the cameras surround)."""
     sparse: Optional[SparseDepth] = None

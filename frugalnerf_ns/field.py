@@ -121,7 +121,7 @@ class FrugalNeRFField(nn.Module):
         return inside_box & in_mask_box & occupied
 
     # ---- queries --------------------------------------------------------------------------------------
-    def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, "n"]:
+    def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
         coords = self.normalize(positions)
         raw = sum(p.sum(dim=-1) for p in self.density_grid.plane_line_products(coords, self.stride(scale)))
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]

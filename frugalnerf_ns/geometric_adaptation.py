@@ -31,7 +31,7 @@ class AdaptationResult(NamedTuple):
     """Eq. 5: L_geo on training rays."""
     loss_novel: Float[Tensor, ""]
     """Eq. 9: L_geo on novel-view rays (0 without novel rays)."""
-    chosen_scale: Int[Tensor, "rays"]
+    chosen_scale: Int[Tensor, " rays"]
     """Scale whose depth became the pseudo ground truth, -1 where the ray was left out (error above the
     threshold, or no other training view to warp into)."""
 
@@ -42,7 +42,7 @@ def cross_scale_geometric_adaptation(
     metric_depths: Float[Tensor, "scales rays"],
     loss_depths: Float[Tensor, "scales rays"],
     source_colors: Float[Tensor, "rays 3"],
-    nearest_view: Int[Tensor, "rays"],
+    nearest_view: Int[Tensor, " rays"],
     num_train_rays: int,
     patch_size: int,
     images: Float[Tensor, "views height width 3"],
@@ -119,7 +119,7 @@ def pseudo_ground_truth_scale(
     intrinsics: Float[Tensor, "views 4"],
     threshold: float,
     kind: ErrorKind = "rmse",
-) -> Int[Tensor, "rays"]:
+) -> Int[Tensor, " rays"]:
     """Eq. 6-8 for any rays (a viewer or render camera): the scale whose depth would become each ray's
     pseudo ground truth, -1 where the ray would be left out.
 
@@ -140,7 +140,7 @@ def scale_choice_colors(chosen_scale: Int[Tensor, "*shape"]) -> Float[Tensor, "*
     return palette[(chosen_scale + 1).clamp(0, len(SCALE_CHOICE_COLORS))]
 
 
-def scale_statistics(chosen_scale: Int[Tensor, "rays"], num_scales: int) -> Dict[str, float]:
+def scale_statistics(chosen_scale: Int[Tensor, " rays"], num_scales: int) -> Dict[str, float]:
     """Fraction of rays whose pseudo depth came from each scale, and of rays left out (paper Fig.
     "Cross-scale geometric adaptation in training"); the fractions sum to 1."""
     total = max(1, chosen_scale.numel())

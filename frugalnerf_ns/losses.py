@@ -160,7 +160,7 @@ def depth_smoothness_loss(depth: Float[Tensor, "patches 2 2"]) -> Float[Tensor, 
     return horizontal.sum(dim=(1, 2)).mean() + vertical.sum(dim=(1, 2)).mean()
 
 
-def inverse_depth_loss(rendered: Float[Tensor, "rays"], target: Float[Tensor, "rays"], min_depth: float = 1e-3) -> Tensor:
+def inverse_depth_loss(rendered: Float[Tensor, " rays"], target: Float[Tensor, " rays"], min_depth: float = 1e-3) -> Tensor:
     """L_sd (paper Eq. 11, DS-NeRF; reference code: MSE on inverse depth) between rendered and sparse metric
     depths. Rendered depth is clamped at ``min_depth`` so an empty ray (depth ~0) cannot blow the loss up."""
     if rendered.numel() == 0:
@@ -168,7 +168,7 @@ def inverse_depth_loss(rendered: Float[Tensor, "rays"], target: Float[Tensor, "r
     return torch.mean((1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2)
 
 
-def pearson_depth_loss(rendered: Float[Tensor, "rays"], predicted: Float[Tensor, "rays"], eps: float = 1e-8) -> Tensor:
+def pearson_depth_loss(rendered: Float[Tensor, " rays"], predicted: Float[Tensor, " rays"], eps: float = 1e-8) -> Tensor:
     """L_d = 1 - Pearson correlation between rendered and predicted depth (0 when perfectly correlated,
     up to 2 when anti-correlated). Fewer than two rays, or a constant input, give no signal (0)."""
     if rendered.numel() < 2:
@@ -182,7 +182,7 @@ def pearson_depth_loss(rendered: Float[Tensor, "rays"], predicted: Float[Tensor,
 
 
 def per_view_pearson_loss(
-    rendered: Float[Tensor, "rays"], predicted: Float[Tensor, "rays"], view: Int[Tensor, "rays"]
+    rendered: Float[Tensor, " rays"], predicted: Float[Tensor, " rays"], view: Int[Tensor, " rays"]
 ) -> Tensor:
     """Mean of ``pearson_depth_loss`` over the training views present in the batch (each view's prediction
     has its own scale and shift)."""

@@ -83,7 +83,7 @@ class OfflineLPIPS(nn.Module):
     # AlexNet's stride-4 convolution and two 3x3 max-pools leave nothing of a side shorter than this.
     MIN_SIDE = 31
 
-    def forward(self, images_0: Float[Tensor, "b 3 h w"], images_1: Float[Tensor, "b 3 h w"]) -> Float[Tensor, "b"]:
+    def forward(self, images_0: Float[Tensor, "b 3 h w"], images_1: Float[Tensor, "b 3 h w"]) -> Float[Tensor, " b"]:
         if min(images_0.shape[-2:]) < self.MIN_SIDE:
             raise ValueError(f"LPIPS needs images of at least {self.MIN_SIDE} pixels a side, got {tuple(images_0.shape[-2:])}")
         x0 = ((images_0 * 2.0 - 1.0) - self.shift) / self.scale

@@ -89,9 +89,9 @@ def spiral_focus_depth(
 def nearest_other_view(
     query_centers: Float[Tensor, "queries 3"],
     view_centers: Float[Tensor, "views 3"],
-    own_view: Optional[Int[Tensor, "queries"]] = None,
+    own_view: Optional[Int[Tensor, " queries"]] = None,
     same_position_fraction: float = 0.0,
-) -> Int[Tensor, "queries"]:
+) -> Int[Tensor, " queries"]:
     """Index of the training view whose centre is closest to each query's centre (a camera or a ray origin),
     never the query's own view: -1 where no other view exists (a single training view).
 

@@ -21,9 +21,9 @@ from torch import Tensor
 class RaySegments(NamedTuple):
     """Where a batch of rays meets the scene box."""
 
-    t_near: Float[Tensor, "rays"]
-    t_far: Float[Tensor, "rays"]
-    hit: Bool[Tensor, "rays"]
+    t_near: Float[Tensor, " rays"]
+    t_far: Float[Tensor, " rays"]
+    hit: Bool[Tensor, " rays"]
 
 
 def intersect_aabb(
@@ -79,8 +79,8 @@ def composite_weights(
     t: Float[Tensor, "rays samples"],
     step: float,
     distance_scale: float,
-    t_near: Optional[Float[Tensor, "rays"]] = None,
-    t_far: Optional[Float[Tensor, "rays"]] = None,
+    t_near: Optional[Float[Tensor, " rays"]] = None,
+    t_far: Optional[Float[Tensor, " rays"]] = None,
 ) -> Composited:
     """Alpha compositing with TensoRF's distance scale: alpha_i = 1 - exp(-sigma_i * delta_i * scale).
 

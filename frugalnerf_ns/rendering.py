@@ -77,7 +77,7 @@ class StepRender:
     """World-space ray origins and unit directions (warping works in the world, also in NDC scenes)."""
     directions: Float[Tensor, "rays 3"]
     scales: List[ScaleRender]
-    metric_depths: List[Float[Tensor, "rays"]]
+    metric_depths: List[Float[Tensor, " rays"]]
     """Each scale's depth as metric distance along the world ray (what warping and L_sd use)."""
     adaptation: Optional[AdaptationResult] = field(default=None)
     """Cross-scale geometric adaptation of this step, computed once (metrics and losses share it)."""

@@ -77,7 +77,7 @@ def project_to_camera(
 
 def sample_images(
     images: Float[Tensor, "views height width 3"],
-    view_index: Int[Tensor, "points"],
+    view_index: Int[Tensor, " points"],
     pixels: Float[Tensor, "points 2"],
 ) -> Warp:
     """Bilinearly sample ``images[view_index]`` at continuous pixel coordinates (pixel centres at i + 0.5).
@@ -110,8 +110,8 @@ def sample_images(
 def warp_to_views(
     origins: Float[Tensor, "points 3"],
     directions: Float[Tensor, "points 3"],
-    depth: Float[Tensor, "points"],
-    target_view: Int[Tensor, "points"],
+    depth: Float[Tensor, " points"],
+    target_view: Int[Tensor, " points"],
     images: Float[Tensor, "views height width 3"],
     camera_to_worlds: Float[Tensor, "views 3 4"],
     intrinsics: Float[Tensor, "views 4"],
@@ -146,11 +146,11 @@ def patch_reprojection_error(
 
 
 class PseudoDepth(NamedTuple):
-    depth: Float[Tensor, "rays"]
+    depth: Float[Tensor, " rays"]
     """Pseudo ground truth depth D' (detached)."""
-    scale: Int[Tensor, "rays"]
+    scale: Int[Tensor, " rays"]
     """Scale l' whose depth was chosen."""
-    reliable: Bool[Tensor, "rays"]
+    reliable: Bool[Tensor, " rays"]
     """The chosen scale's error is at most the threshold (the ray takes part in L_geo)."""
 
 

@@ -38,13 +38,13 @@ class SparseDepth(NamedTuple):
 
     points: Float[Tensor, "points 3"]
     """World positions of the points."""
-    view: Int[Tensor, "obs"]
+    view: Int[Tensor, " obs"]
     """Training view of each observation."""
-    point: Int[Tensor, "obs"]
+    point: Int[Tensor, " obs"]
     """Point of each observation."""
     pixels: Float[Tensor, "obs 2"]
     """(u, v) where the point projects in its view (exact, so the pixel's ray passes through the point)."""
-    depth: Float[Tensor, "obs"]
+    depth: Float[Tensor, " obs"]
     """Metric distance from the view's camera centre to the point."""
 
     @property
@@ -106,7 +106,7 @@ def triangulate_dlt(
 
 def triangulation_angles(
     points: Float[Tensor, "points 3"], centers: Float[Tensor, "points k 3"]
-) -> Float[Tensor, "points"]:
+) -> Float[Tensor, " points"]:
     """Largest angle (degrees) between the rays from a point to the centres of the cameras seeing it."""
     rays = torch.nn.functional.normalize(centers - points[:, None], dim=-1)
     cos = torch.einsum("pid,pjd->pij", rays, rays).clamp(-1.0, 1.0)

@@ -87,7 +87,7 @@ class _BilinearSampleCPU(torch.autograd.Function):
         return accumulated.view(1, channels, height, width).to(ctx.plane_dtype), None, None
 
 
-def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, "n"], y: Float[Tensor, "n"]) -> Float[Tensor, "c n"]:
+def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Float[Tensor, " n"]) -> Float[Tensor, "c n"]:
     """Bilinear read of a [1, C, H, W] tensor at n points, x along the width and y along the height in
     [-1, 1] (align_corners=True, border padding): F.grid_sample, with a faster backward on the CPU."""
     if plane.is_cuda or x.requires_grad or y.requires_grad or not torch.is_grad_enabled():

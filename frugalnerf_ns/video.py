@@ -14,7 +14,9 @@ import sys
 import weakref
 from typing import Optional
 
+from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
+from torch import Tensor
 
 from frugalnerf_ns.progress import FrameProgress
 from frugalnerf_ns.video_path import video_poses

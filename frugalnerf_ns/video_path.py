@@ -100,7 +100,7 @@ def orbit_poses(
     return look_at_poses(positions, center, up).to(camera_to_worlds)
 
 
-def roll_degrees(camera_to_worlds: Float[Tensor, "n 3 4"], up: Float[Tensor, "3"]) -> Float[Tensor, "n"]:
+def roll_degrees(camera_to_worlds: Float[Tensor, "n 3 4"], up: Float[Tensor, "3"]) -> Float[Tensor, " n"]:
     """Roll of each camera against ``up``: the angle between its x axis and the plane perpendicular to up
     (0 for an upright camera), in degrees. A camera looking straight along ``up`` has no defined roll."""
     right = camera_to_worlds[:, :, 0].double()
