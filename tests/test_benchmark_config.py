@@ -1,20 +1,14 @@
 """The scene benchmark's config refers to registered methods/parsers; offline LPIPS stands in for torchmetrics'."""
 
-import importlib.util
 from importlib.metadata import entry_points
 from pathlib import Path
 
 import torch
 import yaml
 
+from tests.helpers import load_script
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_script(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_scene_config_uses_registered_presets_and_parsers():

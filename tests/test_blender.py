@@ -171,7 +171,7 @@ def test_the_datamanager_calls_it_an_object_with_occlusion_and_novel_poses_aroun
     forward = -manager.novel_cameras.camera_to_worlds[:, :3, 2]
     to_focus = torch.nn.functional.normalize(focus - centers, dim=-1)
     assert float((forward * to_focus).sum(-1).min()) > 0.999
-    from tests.test_scene_decisions import model_for
+    from tests.helpers import model_for
 
     model = model_for(manager, occlusion_weight=0.01)
     assert model.scene_type == "object" and model.occlusion_active

@@ -4,7 +4,7 @@ import torch
 
 from frugalnerf_ns.reprojection import project_to_camera
 from frugalnerf_ns.sparse_points import opencv_projection_matrices
-from tests.test_benchmark_config import load_script
+from tests.helpers import load_script
 
 
 def test_true_correspondences_lie_on_the_epipolar_lines_and_shifted_ones_do_not():

@@ -5,7 +5,7 @@ import struct
 import numpy as np
 import torch
 
-from tests.test_benchmark_config import load_script
+from tests.helpers import load_script
 
 
 def test_points3d_bin_round_trip(tmp_path):

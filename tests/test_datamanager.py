@@ -3,15 +3,7 @@
 import pytest
 import torch
 
-from frugalnerf_ns.datamanager import FrugalDataManagerConfig
-from frugalnerf_ns.dataparsers.nerfstudio_format import FewShotNerfstudioDataParserConfig
-
-
-def manager_for(scene, **overrides):
-    fields = dict(train_num_rays_per_batch=100, num_novel_rays_per_batch=40, patch_size=3)
-    fields.update(overrides)
-    config = FrugalDataManagerConfig(dataparser=FewShotNerfstudioDataParserConfig(data=scene), **fields)
-    return config.setup(device="cpu", test_mode="val")
+from tests.helpers import manager_for
 
 
 @pytest.fixture(scope="module")

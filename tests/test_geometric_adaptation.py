@@ -17,8 +17,7 @@ from frugalnerf_ns.geometric_adaptation import (
 from frugalnerf_ns.model import FrugalNeRFModelConfig
 from frugalnerf_ns.novel_views import nearest_other_view
 from frugalnerf_ns.reprojection import unproject_along_rays
-from tests.test_datamanager import manager_for
-from tests.test_reprojection import INTRINSICS, camera, patch_pixels, pixel_rays, plane_depth, render_plane, texture
+from tests.helpers import INTRINSICS, camera, manager_for, patch_pixels, pixel_rays, plane_depth, render_plane, texture
 
 
 @pytest.fixture(scope="module")

@@ -6,31 +6,11 @@ from types import SimpleNamespace
 import pytest
 import torch
 from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.data.scene_box import SceneBox
 
 from frugalnerf_ns import objective
 from frugalnerf_ns.batch import EvalBatch, TrainBatch
-from frugalnerf_ns.model import FrugalNeRFModelConfig, scale_suffix
-
-
-def tiny_model(metadata=None, aabb=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), **overrides):
-    fields = dict(
-        initial_voxels=16**3,
-        final_voxels=24**3,
-        upsample_at=(0.2, 0.4),  # steps 2 and 4 of a 10-step schedule
-        alpha_mask_at=(0.3,),  # step 3
-        density_components=(4, 2, 2),
-        appearance_components=(8, 2, 2),
-        mlp_hidden_dim=16,
-        background="white",
-        distortion_weight=1e-3,
-        density_l1_weight=1e-4,
-    )
-    fields.update(overrides)
-    config = FrugalNeRFModelConfig(**fields)
-    box = SceneBox(aabb=torch.tensor(aabb))
-    torch.manual_seed(0)
-    return config.setup(scene_box=box, num_train_data=3, metadata=metadata or {})
+from frugalnerf_ns.model import scale_suffix
+from tests.helpers import tiny_model
 
 
 def train_batch(image):

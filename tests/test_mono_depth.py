@@ -79,7 +79,7 @@ def test_predictions_have_the_image_size_and_are_cached(tiny_depth_model, tmp_pa
 
 def test_datamanager_and_model_add_the_mono_depth_term(procedural_scene, tiny_depth_model, tmp_path):
     from frugalnerf_ns.model import FrugalNeRFModelConfig
-    from tests.test_datamanager import manager_for
+    from tests.helpers import manager_for
 
     manager = manager_for(
         procedural_scene, mono_depth_model=tiny_depth_model, mono_depth_input_size=64, sparse_cache_dir=tmp_path

@@ -20,7 +20,7 @@ from frugalnerf_ns.raymarch import composite_rgb, composite_weights, intersect_a
 from frugalnerf_ns.reprojection import project_to_camera, unproject_along_rays, warp_to_views
 from frugalnerf_ns.scene_analysis import classify_camera_layout
 from frugalnerf_ns.sparse_points import TriangulationOptions, triangulate_tracks
-from tests.test_reprojection import INTRINSICS, camera, pixel_rays, plane_depth, render_plane
+from tests.helpers import INTRINSICS, camera, pixel_rays, plane_depth, render_plane
 
 FAST = settings(max_examples=60, deadline=None)
 magnitudes = st.floats(min_value=-3.0, max_value=3.0)  # log10 of a scene scale: 1e-3 .. 1e3
@@ -258,7 +258,7 @@ def total_loss(model, bundle, batch):
 
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
 def test_a_training_step_under_cpu_autocast_is_finite(procedural_scene, tmp_path, dtype):
-    from tests.test_datamanager import manager_for
+    from tests.helpers import manager_for
 
     manager = manager_for(procedural_scene, sparse_cache_dir=tmp_path)
     model = tiny_model(manager)
@@ -277,7 +277,7 @@ def test_a_training_step_under_cpu_autocast_is_finite(procedural_scene, tmp_path
 
 
 def test_one_training_view_trains_without_geometric_adaptation_and_says_why(procedural_scene, tmp_path, capsys):
-    from tests.test_datamanager import manager_for
+    from tests.helpers import manager_for
 
     scene = tmp_path / "one-view"
     shutil.copytree(procedural_scene, scene)
@@ -305,7 +305,7 @@ def test_one_training_view_trains_without_geometric_adaptation_and_says_why(proc
 
 @pytest.mark.slow
 def test_ten_thousand_iterations_do_not_drift_to_nan(procedural_scene, tmp_path):
-    from tests.test_datamanager import manager_for
+    from tests.helpers import manager_for
 
     manager = manager_for(procedural_scene, sparse_cache_dir=tmp_path, train_num_rays_per_batch=72,
                           num_novel_rays_per_batch=16, num_sparse_rays_per_batch=0)

@@ -4,7 +4,7 @@ import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
 from frugalnerf_ns.offline_tools import render_test_rgb
-from tests.test_model import tiny_model
+from tests.helpers import tiny_model
 
 
 def small_camera(height=12, width=16):

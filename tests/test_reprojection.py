@@ -1,7 +1,5 @@
 """Geometry of the cross-scale geometric adaptation (pure torch; one test checks nerfstudio's ray convention)."""
 
-import math
-
 import pytest
 import torch
 
@@ -16,43 +14,18 @@ from frugalnerf_ns.reprojection import (
     unproject_along_rays,
     warp_to_views,
 )
-
-WIDTH, HEIGHT, FOCAL = 64, 48, 50.0
-INTRINSICS = torch.tensor([FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2])
-PLANE_Z = -3.0
-
-
-def camera(x=0.0, y=0.0, z=0.0, yaw=0.0):
-    """OpenGL camera at (x, y, z) looking down -z, turned by ``yaw`` radians about the y axis."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    rotation = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-    return torch.cat([rotation, torch.tensor([[x], [y], [z]])], dim=1)
-
-
-def pixel_rays(c2w, pixels):
-    """Unit world rays through continuous pixel coordinates (the inverse of project_to_camera)."""
-    fx, fy, cx, cy = INTRINSICS
-    local = torch.stack([(pixels[:, 0] - cx) / fx, -(pixels[:, 1] - cy) / fy, -torch.ones(len(pixels))], dim=-1)
-    directions = torch.nn.functional.normalize(local @ c2w[:, :3].T, dim=-1)
-    return c2w[:, 3].expand_as(directions), directions
-
-
-def texture(points):
-    """Smooth colour pattern on the plane (varies over a few pixels, so warps are easy to tell apart)."""
-    x, y = points[:, 0], points[:, 1]
-    return torch.stack([0.5 + 0.4 * torch.sin(9 * x), 0.5 + 0.4 * torch.cos(7 * y), 0.5 + 0.4 * torch.sin(5 * (x + y))], -1)
-
-
-def plane_depth(origins, directions):
-    return (PLANE_Z - origins[:, 2]) / directions[:, 2]
-
-
-def render_plane(c2w):
-    rows, cols = torch.meshgrid(torch.arange(HEIGHT) + 0.5, torch.arange(WIDTH) + 0.5, indexing="ij")
-    pixels = torch.stack([cols.flatten(), rows.flatten()], dim=-1)
-    origins, directions = pixel_rays(c2w, pixels)
-    points = unproject_along_rays(origins, directions, plane_depth(origins, directions))
-    return texture(points).reshape(HEIGHT, WIDTH, 3)
+from tests.helpers import (
+    FOCAL,
+    HEIGHT,
+    INTRINSICS,
+    WIDTH,
+    camera,
+    patch_pixels,
+    pixel_rays,
+    plane_depth,
+    render_plane,
+    texture,
+)
 
 
 @pytest.fixture(scope="module")
@@ -60,11 +33,6 @@ def two_views():
     cameras = torch.stack([camera(), camera(x=1.0)])  # ~1.7 px of parallax per 10% of depth
     images = torch.stack([render_plane(c) for c in cameras])
     return cameras, images
-
-
-def patch_pixels(top=20, left=26, k=5):
-    rows, cols = torch.meshgrid(torch.arange(top, top + k) + 0.5, torch.arange(left, left + k) + 0.5, indexing="ij")
-    return torch.stack([cols.flatten(), rows.flatten()], dim=-1)
 
 
 def patch_error(two_views, depth_factor):

@@ -6,20 +6,8 @@ from pathlib import Path
 
 import torch
 
-from frugalnerf_ns.model import FrugalNeRFModelConfig
 from frugalnerf_ns.scene_analysis import grid_side_for_pixels
-from tests.test_datamanager import manager_for
-
-TINY_MODEL = dict(
-    initial_voxels=16**3, final_voxels=24**3, upsample_at=(0.5,), alpha_mask_at=(), density_components=(4, 2, 2),
-    appearance_components=(8, 2, 2), mlp_hidden_dim=16,
-)
-
-
-def model_for(manager, **overrides):
-    config = FrugalNeRFModelConfig(**{**TINY_MODEL, **overrides})
-    dataset = manager.train_dataset
-    return config.setup(scene_box=dataset.scene_box, num_train_data=len(dataset), metadata=dataset.metadata)
+from tests.helpers import manager_for, model_for
 
 
 def test_procedural_object_scene_is_detected_and_published_to_the_model(procedural_scene, tmp_path):

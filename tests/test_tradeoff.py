@@ -5,22 +5,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+from tests.helpers import load_script
 
 SCRIPT = Path(__file__).parents[1] / "scripts" / "tradeoff.py"
-
-
-def load_script():
-    sys.path.insert(0, str(SCRIPT.parent))
-    import tradeoff
-
-    return tradeoff
 
 
 def test_a_budget_is_only_the_iterations_and_the_schedule_follows():
     from frugalnerf_ns.model import steps_at
     from frugalnerf_ns.presets import build_trainer_config
 
-    assert load_script().budget_args("frugalnerf-cpu", 500) == ["--max-num-iterations", "500"]  # preset: 1500
+    assert load_script("tradeoff").budget_args("frugalnerf-cpu", 500) == ["--max-num-iterations", "500"]  # preset: 1500
     model = build_trainer_config("frugalnerf-cpu").pipeline.model
     # What the tradeoff script used to pass by hand, now derived from the run's length.
     assert steps_at(model.upsample_at, 500) == [50, 100, 150, 200, 250]
@@ -29,7 +23,7 @@ def test_a_budget_is_only_the_iterations_and_the_schedule_follows():
 
 
 def test_pareto_front_keeps_only_undominated_runs():
-    tradeoff = load_script()
+    tradeoff = load_script("tradeoff")
     points = [{"run": "a", "seconds": 1, "psnr": 10, "lpips": 0.5}, {"run": "b", "seconds": 2, "psnr": 9, "lpips": 0.4},
               {"run": "c", "seconds": 3, "psnr": 12, "lpips": 0.6}]
     assert [p["run"] for p in tradeoff.pareto_front(points, "psnr", True)] == ["a", "c"]

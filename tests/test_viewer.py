@@ -10,7 +10,6 @@ import urllib.request
 from pathlib import Path
 from typing import List, Tuple
 
-
 BIN = Path(sys.executable).parent
 JPEG, PNG = b"\xff\xd8\xff", b"\x89PNG"
 

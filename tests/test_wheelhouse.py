@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_benchmark_config import load_script
+from tests.helpers import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
