@@ -197,7 +197,9 @@ def baseline_document(scenes: Sequence[GateScene], summaries: Mapping[str, Mappi
         entries[s.label] = {"commit": commit, "seeds": summary["seeds"],
                             "mean": {m: round(v, 4) for m, v in summary["mean"].items()},
                             "spread": {m: round(v, 4) for m, v in summary["spread"].items()}}
-    return {"commit": commit, "recorded": datetime.date.today().isoformat(), "scenes": entries}
+    # The file's commit names every commit its scenes were recorded at (a subset recorded later adds its own).
+    commits = sorted({str(e.get("commit")) for e in entries.values() if e.get("commit")}) or [commit]
+    return {"commit": "+".join(commits), "recorded": datetime.date.today().isoformat(), "scenes": entries}
 
 
 # What a run computes depends on these; the gate's own files, docs and tests do not change it.
