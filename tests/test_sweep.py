@@ -111,6 +111,46 @@ def test_failure_table_names_the_log_and_error():
     assert report.failure_table([{"status": "ok"}]) == ""
 
 
+def test_a_run_trains_and_scores_with_the_code_of_the_checkout_that_started_it(tmp_path):
+    """A sweep or gate started from a git worktree must train that worktree's code (a Ray worker imports the
+    installed copy first): ``execute`` runs its children from ``code_root`` and records that checkout's commit."""
+    import subprocess
+
+    from frugalnerf_ns.sweep.grid import RunSpec
+    from frugalnerf_ns.sweep.runner import execute
+
+    checkout = tmp_path / "worktree"
+    package = checkout / "frugalnerf_ns"
+    package.mkdir(parents=True)
+    (package / "__init__.py").write_text("")
+    # Stands in for the worktree's version of the tools: it says which file ran, and leaves what the runner
+    # looks for (a checkpoint; a RESULT line).
+    (package / "offline_tools.py").write_text(
+        "import json, pathlib, sys\n"
+        "args = sys.argv[1:]\n"
+        "if args[0] == 'train':\n"
+        "    out, exp, stamp = (args[args.index(k) + 1] for k in ('--output-dir', '--experiment-name', '--timestamp'))\n"
+        "    run = pathlib.Path(out) / exp / args[1] / stamp / 'nerfstudio_models'\n"
+        "    run.mkdir(parents=True)\n"
+        "    (run / 'step-000000001.ckpt').write_text(__file__)\n"
+        "else:\n"
+        "    print('RESULT ' + json.dumps({'psnr': 12.5, 'ssim': 0.5, 'lpips': 0.25, 'num_test_views': 1, 'ran': __file__}))\n"
+    )
+    git = ["git", "-C", str(checkout), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "-A"], check=True)
+    subprocess.run([*git, "commit", "-qm", "worktree"], check=True)
+    commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+
+    spec = RunSpec(scene="proc", views=2, method="frugalnerf-tiny", option="full", data=str(tmp_path), parser_args=[],
+                   train_args=[])
+    record = execute(spec, tmp_path / "out", threads=1, code_root=str(checkout))
+    assert record["status"] == "ok", record
+    assert record["psnr"] == 12.5 and record["commit"] == commit and record["code_root"] == str(checkout)
+    ckpt = next((tmp_path / "out" / "runs").rglob("step-*.ckpt"))
+    assert ckpt.read_text() == str(package / "offline_tools.py")  # the worktree's code trained
+
+
 # ---- on a local Ray instance -----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def local_ray():

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from frugalnerf_ns.sweep import report
-from frugalnerf_ns.sweep.grid import GridError, RunSpec, load_grid
+from frugalnerf_ns.sweep.grid import ROOT, GridError, RunSpec, load_grid
 from frugalnerf_ns.sweep.runner import execute
 from frugalnerf_ns.sweep.store import ResultStore
 
@@ -47,8 +47,11 @@ def _init_ray(address: Optional[str]):
     if address:
         ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
     else:
+        # Local workers import this checkout too (a sweep started from a git worktree runs the worktree's
+        # runner; the runs' own code is pinned by ``execute``'s code_root either way).
+        path = os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])
         ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, logging_level=logging.WARNING,
-                 log_to_driver=False)
+                 log_to_driver=False, runtime_env={"env_vars": {"PYTHONPATH": path}})
     return ray, True
 
 
@@ -92,7 +95,8 @@ def _schedule(ray, specs, out, store, cpus_per_run, gpus_per_run, progress_every
         f"{slots} at a time ({total_cpus} CPUs" + (f", {total_gpus:g} GPUs" if total_gpus else "") + ")")
     remote = ray.remote(execute).options(num_cpus=cpus, num_gpus=gpus, max_retries=1, retry_exceptions=False)
     threads = None if gpus else cpus
-    pending = {remote.remote(spec, out, threads): spec for spec in specs}
+    # The checkout this sweep was started from: its code trains, whatever copy a worker imports first.
+    pending = {remote.remote(spec, out, threads, str(ROOT)): spec for spec in specs}
     done = failed = 0
     durations: List[float] = []
     last_report = time.time()

@@ -4,6 +4,10 @@ evaluator, each in a child process, with a log file; returns the run's record.
 Runs in a Ray worker (or in the calling process): a crash, NaN or out-of-memory in the training is a failed
 record with the log's path and last error line, never an exception that ends the sweep. The children are
 killed with the worker (PR_SET_PDEATHSIG), so a worker that dies leaves no training running on its cores.
+
+The children run the code of the checkout that started the sweep (``code_root``: first on their PYTHONPATH,
+their working folder), not whichever copy a Ray worker happens to import: a sweep or gate started from a git
+worktree trains that worktree's code, and the record's commit is that checkout's.
 """
 
 from __future__ import annotations
@@ -34,14 +38,14 @@ def _die_with_parent() -> None:  # preexec_fn: runs in the child between fork an
         pass
 
 
-def _run(command: List[str], log: Path, env: Dict[str, str], capture: bool = False) -> tuple:
+def _run(command: List[str], log: Path, env: Dict[str, str], capture: bool = False, cwd: Optional[Path] = None) -> tuple:
     """(exit status, peak RSS MiB of that child, stdout if ``capture``) of one child process. Its output goes
     to ``log`` (stdout and stderr interleaved as printed; a captured stdout is appended after it ends)."""
     with open(log, "a") as handle:
         handle.write(f"$ {' '.join(command)}\n")
         handle.flush()
         proc = subprocess.Popen(command, stdout=subprocess.PIPE if capture else handle, stderr=handle, text=True,
-                                env=env, preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+                                env=env, cwd=cwd, preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
         stdout = proc.stdout.read() if capture else ""  # type: ignore[union-attr]
         _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
@@ -66,9 +70,9 @@ def last_error_line(log: Path) -> str:
     return lines[-1][:300] if lines else "empty log"
 
 
-def git_commit() -> Optional[str]:
+def git_commit(root: Path = ROOT) -> Optional[str]:
     try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT, timeout=10)
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root, timeout=10)
         return out.stdout.strip() or None
     except (OSError, subprocess.TimeoutExpired):
         return None
@@ -100,23 +104,34 @@ def run_location(spec: RunSpec, out: Path) -> tuple:
     return experiment, Path(out) / "runs" / experiment / spec.method / spec.key
 
 
-def execute(spec: RunSpec, out: Path, threads: Optional[int] = None) -> Dict[str, Any]:
-    """Train and score one run; its record (status "ok" with metrics, or "failed" with the error)."""
+def code_env(code_root: Path, threads: Optional[int] = None) -> Dict[str, str]:
+    """The children's environment: ``code_root`` first on PYTHONPATH (so ``python -m frugalnerf_ns...`` runs
+    that checkout), and the thread count Ray gave the run."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(code_root), *filter(None, [env.get("PYTHONPATH")])])
+    if threads:  # a CPU run uses the cores Ray gave it, not every core of the machine
+        env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
+    return env
+
+
+def execute(spec: RunSpec, out: Path, threads: Optional[int] = None, code_root: Optional[str] = None) -> Dict[str, Any]:
+    """Train and score one run with the code of ``code_root`` (default: this module's checkout); its record
+    (status "ok" with metrics, or "failed" with the error)."""
     out = Path(out)
+    root = Path(code_root) if code_root else ROOT
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     log = logs / f"{spec.key}.log"
     experiment, run_dir = run_location(spec, out)
-    env = dict(os.environ)
-    if threads:  # a CPU run uses the cores Ray gave it, not every core of the machine
-        env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
-    record: Dict[str, Any] = {**spec.to_dict(), "log": str(log), "run_dir": str(run_dir), "commit": git_commit(),
-                              "machine": machine(), "threads": threads, "started_at": time.time()}
+    env = code_env(root, threads)
+    record: Dict[str, Any] = {**spec.to_dict(), "log": str(log), "run_dir": str(run_dir), "commit": git_commit(root),
+                              "code_root": str(root), "machine": machine(), "threads": threads,
+                              "started_at": time.time()}
     train = [sys.executable, "-m", "frugalnerf_ns.offline_tools", "train", spec.method, "--data", spec.data,
              "--output-dir", str(out / "runs"), "--experiment-name", experiment, "--timestamp", spec.key,
              *QUIET, *device_args(), *spec.train_args, *spec.parser_args]
     start = time.time()
-    status, peak, _ = _run(train, log, env)
+    status, peak, _ = _run(train, log, env, cwd=root)
     record["train_seconds"] = time.time() - start
     record["peak_rss_mib"] = peak
     checkpoints = sorted((run_dir / "nerfstudio_models").glob("step-*.ckpt"))
@@ -126,7 +141,7 @@ def execute(spec: RunSpec, out: Path, threads: Optional[int] = None) -> Dict[str
     steps = [int(p.stem.split("-")[1]) for p in checkpoints] if spec.anytime_every else []
     start_eval = time.time()
     status, _, stdout = _run([sys.executable, "-m", "frugalnerf_ns.offline_tools", "eval", str(run_dir / "config.yml"),
-                              *map(str, steps)], log, env, capture=True)
+                              *map(str, steps)], log, env, capture=True, cwd=root)
     record["eval_seconds"] = time.time() - start_eval
     results = [json.loads(line[len("RESULT "):]) for line in stdout.splitlines() if line.startswith("RESULT ")]
     if status != 0 or not results:
