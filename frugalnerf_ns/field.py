@@ -136,7 +136,7 @@ class FrugalNeRFField(nn.Module):
 
     # ---- schedules (called from training callbacks) ---------------------------------------------------
     def upsample(self, resolution: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:
-        """Resample both grids (and, given the grid optimiser's state, its moments: ``TensorialGrid.resample``)."""
+        """Resample both grids (and, given the grid optimiser's state, its moments: ``TensorVMGrid.resample``)."""
         self.density_grid.resample(resolution, optimizer_state)
         self.appearance_grid.resample(resolution, optimizer_state)
 

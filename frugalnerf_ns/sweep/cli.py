@@ -29,7 +29,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from frugalnerf_ns.sweep import report
 from frugalnerf_ns.sweep.grid import ROOT, GridError, RunSpec, load_grid
-from frugalnerf_ns.sweep.runner import execute
+from frugalnerf_ns.sweep.runner import execute, python_path_first
 from frugalnerf_ns.sweep.store import ResultStore
 
 
@@ -49,7 +49,7 @@ def _init_ray(address: Optional[str]):
     else:
         # Local workers import this checkout too (a sweep started from a git worktree runs the worktree's
         # runner; the runs' own code is pinned by ``execute``'s code_root either way).
-        path = os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])
+        path = python_path_first(ROOT)
         ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, logging_level=logging.WARNING,
                  log_to_driver=False, runtime_env={"env_vars": {"PYTHONPATH": path}})
     return ray, True

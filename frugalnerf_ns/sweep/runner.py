@@ -104,11 +104,15 @@ def run_location(spec: RunSpec, out: Path) -> tuple:
     return experiment, Path(out) / "runs" / experiment / spec.method / spec.key
 
 
+def python_path_first(code_root: Path) -> str:
+    """This process's PYTHONPATH with ``code_root`` in front (``python -m frugalnerf_ns...`` runs that checkout)."""
+    return os.pathsep.join([str(code_root), *filter(None, [os.environ.get("PYTHONPATH")])])
+
+
 def code_env(code_root: Path, threads: Optional[int] = None) -> Dict[str, str]:
-    """The children's environment: ``code_root`` first on PYTHONPATH (so ``python -m frugalnerf_ns...`` runs
-    that checkout), and the thread count Ray gave the run."""
+    """The children's environment: ``code_root`` first on PYTHONPATH, and the thread count Ray gave the run."""
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(code_root), *filter(None, [env.get("PYTHONPATH")])])
+    env["PYTHONPATH"] = python_path_first(code_root)
     if threads:  # a CPU run uses the cores Ray gave it, not every core of the machine
         env.update({"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)})
     return env
