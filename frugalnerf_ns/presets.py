@@ -9,7 +9,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import sys
-from importlib import resources
 from typing import Any, Dict, Mapping, Tuple
 
 import yaml
@@ -19,6 +18,7 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from frugalnerf_ns.config_files import config_text
 from frugalnerf_ns.datamanager import FrugalDataManagerConfig
 from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig
 from frugalnerf_ns.model import FrugalNeRFModelConfig
@@ -36,7 +36,7 @@ class AdamBetasOptimizerConfig(AdamOptimizerConfig):
 
 def load_preset_table() -> Dict[str, Dict[str, Any]]:
     """The raw YAML table: name -> {description, inherits?, overrides}."""
-    text = resources.files("frugalnerf_ns.configs").joinpath("presets.yaml").read_text()
+    text = config_text("presets.yaml")
     return yaml.safe_load(text)
 
 

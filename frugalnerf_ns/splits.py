@@ -8,12 +8,12 @@ for known scenes or are sampled uniformly from the non-test frames.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib import resources
 from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 import yaml
 
+from frugalnerf_ns.config_files import config_text
 from frugalnerf_ns.data import DataError
 
 
@@ -25,7 +25,7 @@ class ViewSplit:
 
 def load_split_table() -> Dict[str, Any]:
     """``configs/splits.yaml``: per-layout defaults and the paper's per-scene training views."""
-    text = resources.files("frugalnerf_ns.configs").joinpath("splits.yaml").read_text()
+    text = config_text("splits.yaml")
     return yaml.safe_load(text)
 
 

@@ -1,6 +1,12 @@
+import os
+import shutil
+import subprocess
+import sys
 from importlib.metadata import entry_points
+from pathlib import Path
 
 import pytest
+import yaml
 
 from frugalnerf_ns import presets
 
@@ -113,3 +119,34 @@ def test_speed_presets_trade_iterations_and_grid_against_the_paper_preset():
     assert quality.pipeline.datamanager.train_num_rays_per_batch > paper.pipeline.datamanager.train_num_rays_per_batch
     # Everything else stays the paper's (same losses and weights).
     assert fast.pipeline.model.geo_weight == paper.pipeline.model.geo_weight == quality.pipeline.model.geo_weight
+
+
+def test_a_checkout_on_pythonpath_reads_its_own_configs(tmp_path):
+    # A git worktree gated with main's editable install first put its code on PYTHONPATH, but
+    # frugalnerf_ns.configs still resolved to the installed checkout: a preset change was trained as main's.
+    root = Path(__file__).resolve().parent.parent
+    copy = tmp_path / "checkout"
+    shutil.copytree(root / "frugalnerf_ns", copy / "frugalnerf_ns", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(root / "configs", copy / "configs")
+    shutil.copy(root / "pyproject.toml", copy / "pyproject.toml")
+    table = yaml.safe_load((copy / "configs" / "presets.yaml").read_text())
+    table["frugalnerf-cpu"]["overrides"]["pipeline.model.initial_voxels"] = 12345
+    (copy / "configs" / "presets.yaml").write_text(yaml.safe_dump(table))
+    splits = yaml.safe_load((copy / "configs" / "splits.yaml").read_text())
+    splits["checkout_marker"] = [7]
+    (copy / "configs" / "splits.yaml").write_text(yaml.safe_dump(splits))
+    probe = (
+        "import frugalnerf_ns, frugalnerf_ns.presets as p, frugalnerf_ns.splits as s;"
+        "print(frugalnerf_ns.__file__);"
+        "print(p.resolved_overrides('frugalnerf-cpu', p.load_preset_table())['pipeline.model.initial_voxels']);"
+        "print(s.load_split_table().get('checkout_marker'))"
+    )
+    env = {**os.environ, "PYTHONPATH": str(copy)}
+    out = subprocess.run([sys.executable, "-c", probe], cwd=copy, env=env, capture_output=True, text=True, check=True)
+    lines = out.stdout.strip().splitlines()
+    assert lines[0] == str(copy / "frugalnerf_ns" / "__init__.py")
+    assert lines[1:] == ["12345", "[7]"]
+    # The checkout this test runs from reads its own file as well.
+    assert presets.resolved_overrides("frugalnerf-cpu", presets.load_preset_table())[
+        "pipeline.model.initial_voxels"] == yaml.safe_load((root / "configs" / "presets.yaml").read_text())[
+        "frugalnerf-cpu"]["overrides"]["pipeline.model.initial_voxels"]
