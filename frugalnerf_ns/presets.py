@@ -63,11 +63,24 @@ def _interactive() -> bool:
 
 
 def base_trainer_config(method_name: str) -> FrugalTrainerConfig:
-    """The shape of every FrugalNeRF run; the numbers come from the presets."""
+    """The paper's run (LLFF 2-view, Sec. 4 "Implementation details"): the root preset ``frugalnerf``.
+
+    The paper's settings live once each: the model's and the datamanager's as the defaults of
+    FrugalNeRFModelConfig and FrugalDataManagerConfig, the schedule, batch and learning rates here. Every other
+    preset in ``configs/presets.yaml`` derives from this one by overrides."""
     return FrugalTrainerConfig(
         method_name=method_name,
+        max_num_iterations=5000,
+        # Our choices (the paper names none), stated here rather than left to nerfstudio's defaults.
+        steps_per_eval_batch=500,
+        steps_per_eval_image=500,
+        steps_per_eval_all_images=5000,
+        steps_per_save=1000,
+        mixed_precision=False,
         pipeline=FrugalPipelineConfig(
-            datamanager=FrugalDataManagerConfig(dataparser=AutoDataParserConfig()),
+            # 4096 rays per step (the reference's batch_size); evaluation batches of the same size.
+            datamanager=FrugalDataManagerConfig(dataparser=AutoDataParserConfig(), train_num_rays_per_batch=4096,
+                                                eval_num_rays_per_batch=4096),
             model=FrugalNeRFModelConfig(),
         ),
         optimizers={

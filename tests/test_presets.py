@@ -29,10 +29,18 @@ def test_nerfstudio_discovers_the_methods():
 
 
 def test_paper_preset_holds_the_paper_settings():
+    # The paper's settings are stated once, as config defaults and in base_trainer_config; the root preset
+    # repeats none of them (a second copy could drift from the first).
+    assert presets.load_preset_table()["frugalnerf"]["overrides"] == {}
     config = presets.build_trainer_config("frugalnerf")
     model = config.pipeline.model
     assert config.max_num_iterations == 5000
     assert config.pipeline.datamanager.train_num_rays_per_batch == 4096
+    assert config.pipeline.datamanager.patch_size == 5 and config.pipeline.datamanager.num_novel_rays_per_batch == 4096
+    # Loss weights of the LLFF setting (Sec. 4, the supplementary "Losses" and the reference LLFF config).
+    assert model.lower_scale_color_weight == 10.0 and model.geo_weight == 0.01 and model.sparse_depth_weight == 0.5
+    assert model.appearance_tv_weight == model.density_tv_weight == 10.0 and model.distortion_weight == 5e-4
+    assert model.depth_smoothness_weight == 5e-3 and model.reprojection_threshold == 0.5
     assert model.initial_voxels == 64**3 and model.final_voxels == 640**3
     assert model.density_components == (16, 4, 4) and model.appearance_components == (48, 12, 12)
     assert model.num_lower_scales == 2 and model.downsample_ratio == 4
