@@ -30,6 +30,7 @@ from frugalnerf_ns.batch import EvalBatch, TrainBatch
 from frugalnerf_ns.cache import cache_file_name
 from frugalnerf_ns.data import DataError
 from frugalnerf_ns.dataset import FrugalDataset
+from frugalnerf_ns.metrics import composite
 from frugalnerf_ns.mono_depth import load_or_predict
 from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
 from frugalnerf_ns.scene_analysis import (
@@ -147,7 +148,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         # Warps compare colours, so images with alpha are composited on white once, here.
         rgb = self.train_images[..., :3]
         if self.train_images.shape[-1] == 4:
-            rgb = rgb * self.train_images[..., 3:] + (1.0 - self.train_images[..., 3:])
+            rgb = composite(rgb, self.train_images[..., 3:])
         self.warp_images = rgb.contiguous()
         self.warp_intrinsics = torch.stack(
             [cameras.fx[:, 0], cameras.fy[:, 0], cameras.cx[:, 0], cameras.cy[:, 0]], dim=-1

@@ -26,11 +26,17 @@ def masked_psnr(rgb: Tensor, image: Tensor, mask: Tensor) -> float:
     return float(-10.0 * torch.log10(mse.clamp_min(10.0 ** (-PSNR_CAP_DB / 10.0))))
 
 
+def composite(rgb: Tensor, alpha: Tensor, background: Tensor | float = 1.0) -> Tensor:
+    """``rgb`` over ``background`` with coverage ``alpha`` (the one alpha composite: RGBA training targets,
+    the warps' white-composited images and the DTU evaluation's masked images all use it)."""
+    alpha = alpha.to(rgb.dtype)
+    return rgb * alpha + background * (1.0 - alpha)
+
+
 def white_background(rgb: Tensor, mask: Tensor) -> Tensor:
     """``rgb * mask + (1 - mask)``: the image with everything outside the object mask set to white (RegNeRF's
     DTU evaluation does this to prediction and ground truth before SSIM and LPIPS)."""
-    mask = mask.to(rgb.dtype)
-    return rgb * mask + (1.0 - mask)
+    return composite(rgb, mask)
 
 
 def masked_image_metrics(

@@ -20,6 +20,7 @@ from frugalnerf_ns import losses
 from frugalnerf_ns.batch import EvalBatch, TrainBatch
 from frugalnerf_ns.field import FrugalNeRFField
 from frugalnerf_ns.geometric_adaptation import AdaptationResult, cross_scale_geometric_adaptation
+from frugalnerf_ns.metrics import composite
 from frugalnerf_ns.rendering import StepRender
 
 if TYPE_CHECKING:
@@ -37,7 +38,7 @@ class ReferenceViews(NamedTuple):
 def target_rgb(image: Tensor, background: Tensor) -> Float[Tensor, "rays 3"]:
     """Ground-truth colour; images with alpha are composited on the same background as the render."""
     if image.shape[-1] == 4:
-        return image[..., :3] * image[..., 3:] + background * (1.0 - image[..., 3:])
+        return composite(image[..., :3], image[..., 3:], background)
     return image[..., :3]
 
 

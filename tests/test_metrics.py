@@ -54,3 +54,19 @@ def test_ssim_is_that_of_the_white_composites_and_differs_from_black():
     assert metrics["ssim"] == pytest.approx(on_white, abs=1e-6)
     assert abs(on_white - on_black) > 1e-3  # the choice of background changes the number
     assert "lpips" not in metrics  # LPIPS unavailable: left out, not zero
+
+
+def test_composite_is_the_over_operator_bit_for_bit():
+    from frugalnerf_ns.metrics import composite
+
+    generator = torch.Generator().manual_seed(0)
+    rgb, alpha = torch.rand(64, 3, generator=generator), torch.rand(64, 1, generator=generator)
+    background = torch.rand(3, generator=generator)
+    # The inline formulas it replaced (training target, warp images, masked evaluation), exactly.
+    assert torch.equal(composite(rgb, alpha, background), rgb * alpha + background * (1.0 - alpha))
+    assert torch.equal(composite(rgb, alpha), rgb * alpha + (1.0 - alpha))
+    # Fully covered keeps the colour, uncovered shows the background; a bool mask counts as 0 / 1.
+    assert torch.equal(composite(rgb, torch.ones(64, 1), background), rgb)
+    assert torch.equal(composite(rgb, torch.zeros(64, 1), background), background.expand(64, 3))
+    mask = alpha > 0.5
+    assert torch.equal(composite(rgb, mask), torch.where(mask, rgb, torch.ones_like(rgb)))
