@@ -6,6 +6,9 @@ from __future__ import annotations
 from typing import Tuple
 
 import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor
 
 
 def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
@@ -21,6 +24,17 @@ def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     out = c2w.copy()
     out[..., :3, 1:3] *= -1.0
     return out
+
+
+def look_at_poses(
+    positions: Float[Tensor, "n 3"], target: Float[Tensor, "3"], up: Float[Tensor, "3"]
+) -> Float[Tensor, "n 3 4"]:
+    """Camera-to-worlds (OpenGL axes) at ``positions`` looking at ``target`` with no roll against ``up``: the one
+    look-at frame of the novel-view spiral, the video paths and the procedural scene's cameras."""
+    back = torch.nn.functional.normalize(positions - target, dim=-1)
+    right = torch.nn.functional.normalize(torch.linalg.cross(up.expand_as(back), back, dim=-1), dim=-1)
+    camera_up = torch.linalg.cross(back, right, dim=-1)
+    return torch.stack([right, camera_up, back, positions], dim=-1)
 
 
 def _normalize(v: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from frugalnerf_ns.camera_conventions import average_pose
+from frugalnerf_ns.camera_conventions import average_pose, look_at_poses
 from frugalnerf_ns.scene_analysis import axes_conditioning, focus_point
 
 
@@ -43,11 +43,7 @@ def spiral_poses(
     angles = torch.linspace(0.0, 2.0 * math.pi * rotations, num_poses + 1, dtype=torch.float64)[:-1]
     local = torch.stack([angles.cos(), -angles.sin(), -(angles * zrate).sin()], dim=-1) * radii
     positions = centre + local @ rotation.T
-    back = torch.nn.functional.normalize(positions - lookat, dim=-1)
-    right = torch.nn.functional.normalize(torch.linalg.cross(rotation[:, 1].expand_as(back), back), dim=-1)
-    up = torch.linalg.cross(back, right)
-    spiral = torch.stack([right, up, back, positions], dim=-1)
-    return spiral.to(camera_to_worlds)
+    return look_at_poses(positions, lookat, rotation[:, 1]).to(camera_to_worlds)
 
 
 def optical_axes_focus(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Optional[Float[Tensor, "3"]]:

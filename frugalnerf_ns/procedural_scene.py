@@ -18,6 +18,8 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from frugalnerf_ns.camera_conventions import look_at_poses
+
 WHITE = torch.ones(3)
 
 
@@ -38,11 +40,8 @@ class SceneSpec:
 
 def look_at(eye: Tensor, target: Tensor, world_up: Tensor = torch.tensor([0.0, 0.0, 1.0])) -> Tensor:
     """Camera-to-world (4x4, OpenGL axes as nerfstudio uses: x right, y up, looking down -z)."""
-    forward = torch.nn.functional.normalize(target - eye, dim=0)
-    right = torch.nn.functional.normalize(torch.linalg.cross(forward, world_up), dim=0)
-    up = torch.linalg.cross(right, forward)
     c2w = torch.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, eye
+    c2w[:3] = look_at_poses(eye[None], target, world_up)[0]
     return c2w
 
 

@@ -15,6 +15,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from frugalnerf_ns.camera_conventions import look_at_poses
 from frugalnerf_ns.novel_views import spiral_poses
 
 # Training cameras spread over less than this azimuth (around the focus) get an arc through their region
@@ -45,16 +46,6 @@ def world_up(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Float[Tensor, "3"]
     mean_right = torch.nn.functional.normalize(rights.mean(0), dim=0)
     up = mean_up - (mean_up @ mean_right) * mean_right
     return torch.nn.functional.normalize(up, dim=0)
-
-
-def look_at_poses(
-    positions: Float[Tensor, "n 3"], target: Float[Tensor, "3"], up: Float[Tensor, "3"]
-) -> Float[Tensor, "n 3 4"]:
-    """Camera-to-worlds at ``positions`` looking at ``target`` with no roll against ``up``."""
-    back = torch.nn.functional.normalize(positions - target, dim=-1)
-    right = torch.nn.functional.normalize(torch.linalg.cross(up.expand_as(back), back, dim=-1), dim=-1)
-    camera_up = torch.linalg.cross(back, right, dim=-1)
-    return torch.stack([right, camera_up, back, positions], dim=-1)
 
 
 def orbit_poses(

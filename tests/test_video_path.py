@@ -135,3 +135,26 @@ def test_dtu_orbit_stays_between_the_training_cameras():
     assert float((poses[0, :, 3] - cameras[0, :, 3]).norm()) < 0.1 * baseline
     distance = torch.cdist(poses[:, :, 3].double(), cameras[:, :, 3].double())
     assert float(distance.min(dim=-1).values.max()) <= 0.6 * baseline
+
+
+def test_the_one_look_at_frame_aims_at_the_target_without_roll():
+    from frugalnerf_ns.camera_conventions import look_at_poses
+    from frugalnerf_ns.procedural_scene import look_at
+
+    generator = torch.Generator().manual_seed(0)
+    positions = torch.randn(50, 3, generator=generator, dtype=torch.float64) * 3
+    target, up = torch.tensor([0.2, -0.1, 0.3], dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    poses = look_at_poses(positions, target, up)
+    rotation = poses[:, :, :3]
+    assert torch.allclose(rotation.transpose(1, 2) @ rotation, torch.eye(3, dtype=torch.float64).expand(50, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(rotation), torch.ones(50, dtype=torch.float64))
+    # OpenGL: the camera looks down -z, so -back points from the camera to the target.
+    to_target = torch.nn.functional.normalize(target - positions, dim=-1)
+    assert torch.allclose(-rotation[:, :, 2], to_target, atol=1e-12)
+    # No roll: the right axis is level (perpendicular to up) and the camera's up leans towards the world's up.
+    assert torch.allclose(rotation[:, :, 0] @ up, torch.zeros(50, dtype=torch.float64), atol=1e-12)
+    assert (rotation[:, :, 1] @ up > 0).all()
+    assert torch.equal(poses[:, :, 3], positions)
+    # The procedural scene's 4x4 cameras are the same frame.
+    c2w = look_at(positions[0].float(), target.float(), up.float())
+    assert torch.allclose(c2w[:3], poses[0].float(), atol=1e-6) and c2w[3].tolist() == [0.0, 0.0, 0.0, 1.0]
