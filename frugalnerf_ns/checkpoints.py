@@ -98,12 +98,13 @@ def load_for_evaluation(config: Any, pipeline: Any) -> Tuple[Path, int]:
     return path, int(state["step"])
 
 
-def use_intact_checkpoints_in_eval_tools() -> None:
+def use_intact_checkpoints_in_eval_tools(pipeline_class: type) -> None:
     """Make nerfstudio's evaluation tools load checkpoints with ``load_for_evaluation``.
 
     ns-eval, ns-render and ns-viewer call ``eval_utils.eval_load_checkpoint`` right after building the
     pipeline and offer no hook for a method to load its own checkpoints, so FrugalPipeline calls this while
-    it is built. Other methods' pipelines keep nerfstudio's function."""
+    it is built and hands in its class (this module does not import the pipeline). Other methods' pipelines
+    keep nerfstudio's function."""
     from nerfstudio.utils import eval_utils
 
     original = eval_utils.eval_load_checkpoint
@@ -111,9 +112,7 @@ def use_intact_checkpoints_in_eval_tools() -> None:
         return
 
     def eval_load_checkpoint(config, pipeline):
-        from frugalnerf_ns.pipeline import FrugalPipeline
-
-        if isinstance(pipeline, FrugalPipeline):
+        if isinstance(pipeline, pipeline_class):
             with one_line_errors():
                 return load_for_evaluation(config, pipeline)
         return original(config, pipeline)

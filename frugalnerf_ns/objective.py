@@ -24,7 +24,7 @@ from frugalnerf_ns.metrics import composite
 from frugalnerf_ns.rendering import StepRender
 
 if TYPE_CHECKING:
-    from frugalnerf_ns.model import FrugalNeRFModelConfig
+    from frugalnerf_ns.model_config import FrugalNeRFModelConfig
 
 
 class ReferenceViews(NamedTuple):

@@ -31,7 +31,7 @@ class FrugalPipeline(VanillaPipeline):
         # Every nerfstudio command that reads data builds the pipeline: bad data ends it with one line.
         with one_line_errors():
             super().__init__(config, device, *args, **kwargs)
-        use_intact_checkpoints_in_eval_tools()
+        use_intact_checkpoints_in_eval_tools(FrugalPipeline)
         teach_ns_render_spiral(self)
         images = getattr(self.datamanager, "warp_images", None)
         set_views = getattr(self.model, "set_reference_views", None)
