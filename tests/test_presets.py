@@ -102,7 +102,7 @@ def test_list_values_become_tuples():
 @pytest.mark.parametrize("name", sorted(presets.load_preset_table()))
 def test_every_preset_schedule_fits_its_iterations(name):
     config = presets.build_trainer_config(name)
-    from frugalnerf_ns.model import steps_at
+    from frugalnerf_ns.training_schedule import steps_at
 
     total = config.max_num_iterations
     model = config.pipeline.model
@@ -113,7 +113,7 @@ def test_every_preset_schedule_fits_its_iterations(name):
 
 
 def test_paper_preset_schedule_is_the_papers_steps():
-    from frugalnerf_ns.model import steps_at
+    from frugalnerf_ns.training_schedule import steps_at
 
     model = presets.build_trainer_config("frugalnerf").pipeline.model
     assert steps_at(model.upsample_at, 5000) == [500, 1000, 1500, 2000, 2500, 3000]
