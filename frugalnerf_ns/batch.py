@@ -16,7 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+import torch
 from jaxtyping import Float, Int
+from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
 
 
@@ -71,3 +73,19 @@ class EvalBatch:
     """(image, row, column) of each pixel."""
     eval_mask: Optional[Tensor] = None
     """Object mask at each pixel (DTU protocol), where the dataparser lists masks."""
+
+
+def concatenate_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:
+    """The rays of ``first`` followed by those of ``second`` (1-D bundles with the same fields)."""
+    cat = lambda a, b: None if a is None else torch.cat([a, b], dim=0)  # noqa: E731
+    metadata = {key: torch.cat([value, second.metadata[key]], dim=0) for key, value in first.metadata.items()}
+    return RayBundle(
+        origins=cat(first.origins, second.origins),
+        directions=cat(first.directions, second.directions),
+        pixel_area=cat(first.pixel_area, second.pixel_area),
+        camera_indices=cat(first.camera_indices, second.camera_indices),
+        nears=cat(first.nears, second.nears),
+        fars=cat(first.fars, second.fars),
+        metadata=metadata,
+        times=cat(first.times, second.times),
+    )

@@ -26,15 +26,15 @@ from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
-from frugalnerf_ns.batch import EvalBatch, TrainBatch
+from frugalnerf_ns.batch import EvalBatch, TrainBatch, concatenate_ray_bundles
 from frugalnerf_ns.cache import cache_file_name
 from frugalnerf_ns.data import DataError
 from frugalnerf_ns.dataset import FrugalDataset
 from frugalnerf_ns.metrics import composite
 from frugalnerf_ns.mono_depth import load_or_predict
-from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
+from frugalnerf_ns.novel_cameras import cameras_at, novel_view_poses
+from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth
 from frugalnerf_ns.scene_analysis import (
-    SURROUND_MIN_COVERAGE,
     CameraLayout,
     SceneType,
     classify_camera_layout,
@@ -43,17 +43,7 @@ from frugalnerf_ns.scene_analysis import (
     seen_region_box,
     uninformative_view_notes,
 )
-from frugalnerf_ns.sparse_points import (
-    SparseDepth,
-    TriangulationOptions,
-    cache_key,
-    load_sparse_depth,
-    points_inside_box,
-    save_sparse_depth,
-    triangulate_training_views,
-)
-from frugalnerf_ns.video import cameras_at
-from frugalnerf_ns.video_path import orbit_poses
+from frugalnerf_ns.sparse_points import SparseDepth, TriangulationOptions, training_sparse_depth
 
 
 @dataclass
@@ -253,36 +243,19 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
     def _sparse_points(self, cameras: Cameras) -> Optional[SparseDepth]:
         """Triangulated points of the training views, from the cache when it matches; None when too few."""
         images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in self.warp_images]
-        c2w = cameras.camera_to_worlds.double()
-        intrinsics = self.warp_intrinsics.double().cpu()
-        near_far = (self.train_dataparser_outputs.metadata or {}).get("near_far")
-        bounds = None if near_far is None else (float(near_far[0]), float(near_far[1]))
-        # Configs saved before this option existed load without it (nerfstudio rebuilds them from YAML).
-        options = getattr(self.config, "triangulation", None) or TriangulationOptions()
-        key = cache_key(images, c2w, intrinsics, options, bounds)
-        path = self._cache_path("sparse_depth")
-        sparse, why = load_sparse_depth(path, key)
-        if sparse is None:
-            if why != "missing":
-                CONSOLE.print(f"[bold yellow]frugalnerf: sparse-depth cache {path} is {why}: rebuilding it.")
-            sparse = triangulate_training_views(images, c2w, intrinsics, options, bounds)
-            try:
-                save_sparse_depth(path, sparse, key)
-            except OSError as err:
-                CONSOLE.print(f"frugalnerf: could not cache sparse points in {path} ({err}); they stay in memory.")
         metadata = self.train_dataparser_outputs.metadata or {}
-        if metadata.get("ndc") is None:
-            # A metric box (object scenes): points outside it are background mismatches. (NDC boxes are not
-            # in world units; forward-facing scenes filter with their near/far bounds instead.)
-            sparse = points_inside_box(sparse, self.train_dataparser_outputs.scene_box.aabb)
-        if sparse.num_points < self.config.min_sparse_points:
-            CONSOLE.print(
-                f"[bold yellow]frugalnerf: triangulating the training views found {sparse.num_points} points "
-                f"(fewer than --pipeline.datamanager.min-sparse-points {self.config.min_sparse_points}): training "
-                "goes on without the sparse depth loss."
-            )
+        near_far = metadata.get("near_far")
+        sparse = training_sparse_depth(
+            images, cameras.camera_to_worlds.double(), self.warp_intrinsics.double().cpu(),
+            # Configs saved before this option existed load without it (nerfstudio rebuilds them from YAML).
+            getattr(self.config, "triangulation", None) or TriangulationOptions(),
+            None if near_far is None else (float(near_far[0]), float(near_far[1])), self._cache_path("sparse_depth"),
+            # A metric box (object scenes) drops background mismatches; NDC boxes are not in world units.
+            self.train_dataparser_outputs.scene_box.aabb if metadata.get("ndc") is None else None,
+            self.config.min_sparse_points, CONSOLE.print,
+        )
+        if sparse is None:
             return None
-        CONSOLE.print(f"frugalnerf: {sparse.num_points} sparse points from the training views supervise depth (L_sd).")
         return SparseDepth(*(t.float().to(self.device) if t.is_floating_point() else t.to(self.device) for t in sparse))
 
     def _sparse_rays(self) -> Tuple[RayBundle, Tensor]:
@@ -307,19 +280,11 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         )
 
     def _novel_view_cameras(self, cameras: Cameras) -> Cameras:
-        """Novel poses with the first training camera's intrinsics: the paper's spiral around the mean training
-        pose, or, for an object the training cameras surround (NeRF-synthetic), where a mean pose would sit
-        inside the object, one turn around it at the cameras' mean distance and height."""
-        layout = self.scene_layout
-        surrounded = self.scene_type == "object" and layout.coverage_degrees >= SURROUND_MIN_COVERAGE
-        self.novel_path = "orbit" if surrounded else "spiral"
-        if surrounded:
-            poses = orbit_poses(cameras.camera_to_worlds, layout.focus, self.config.num_novel_poses, full_circle=True)
-        else:
-            poses = spiral_poses(
-                cameras.camera_to_worlds, self.spiral_focus_depth(), self.config.num_novel_poses,
-                self.config.spiral_rotations, self.config.spiral_radius_scale, self.config.spiral_zrate,
-            )
+        poses, self.novel_path = novel_view_poses(
+            cameras.camera_to_worlds, self.scene_type, self.scene_layout, self.spiral_focus_depth,
+            self.config.num_novel_poses, self.config.spiral_rotations, self.config.spiral_radius_scale,
+            self.config.spiral_zrate,
+        )
         return cameras_at(poses, cameras)
 
     def _sample_patches(self, num_patches: int, num_views: int, height: int, width: int, k: int) -> Int[Tensor, "rays 3"]:
@@ -384,19 +349,3 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
     def get_train_rays_per_batch(self) -> int:
         k = self.config.patch_size
         return max(1, self._train_rays_per_batch() // (k * k)) * k * k
-
-
-def concatenate_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:
-    """The rays of ``first`` followed by those of ``second`` (1-D bundles with the same fields)."""
-    cat = lambda a, b: None if a is None else torch.cat([a, b], dim=0)  # noqa: E731
-    metadata = {key: torch.cat([value, second.metadata[key]], dim=0) for key, value in first.metadata.items()}
-    return RayBundle(
-        origins=cat(first.origins, second.origins),
-        directions=cat(first.directions, second.directions),
-        pixel_area=cat(first.pixel_area, second.pixel_area),
-        camera_indices=cat(first.camera_indices, second.camera_indices),
-        nears=cat(first.nears, second.nears),
-        fars=cat(first.fars, second.fars),
-        metadata=metadata,
-        times=cat(first.times, second.times),
-    )

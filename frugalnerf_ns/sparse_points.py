@@ -18,7 +18,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -361,3 +361,41 @@ def load_sparse_depth(path: Path, key: str) -> Tuple[Optional[SparseDepth], str]
     if n and (int(sparse.point.max()) >= sparse.points.shape[0] or bool((sparse.depth <= 0).any())):
         return None, "corrupt (inconsistent arrays)"
     return sparse, ""
+
+
+def training_sparse_depth(
+    images: Sequence[np.ndarray],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    options: TriangulationOptions,
+    bounds: Optional[Tuple[float, float]],
+    cache_path: Path,
+    box: Optional[Float[Tensor, "2 3"]],
+    min_points: int,
+    say: Callable[[str], None],
+) -> Optional[SparseDepth]:
+    """The sparse depth a training run uses: the cached points when the cache matches these views and options,
+    else triangulated (and cached; a cache that cannot be written is said and skipped). With a metric ``box``
+    (object scenes), points outside it are dropped as background mismatches. None, said, when fewer than
+    ``min_points`` remain: training goes on without L_sd."""
+    key = cache_key(images, camera_to_worlds, intrinsics, options, bounds)
+    sparse, why = load_sparse_depth(cache_path, key)
+    if sparse is None:
+        if why != "missing":
+            say(f"[bold yellow]frugalnerf: sparse-depth cache {cache_path} is {why}: rebuilding it.")
+        sparse = triangulate_training_views(images, camera_to_worlds, intrinsics, options, bounds)
+        try:
+            save_sparse_depth(cache_path, sparse, key)
+        except OSError as err:
+            say(f"frugalnerf: could not cache sparse points in {cache_path} ({err}); they stay in memory.")
+    if box is not None:
+        sparse = points_inside_box(sparse, box)
+    if sparse.num_points < min_points:
+        say(
+            f"[bold yellow]frugalnerf: triangulating the training views found {sparse.num_points} points "
+            f"(fewer than --pipeline.datamanager.min-sparse-points {min_points}): training goes on without the "
+            "sparse depth loss."
+        )
+        return None
+    say(f"frugalnerf: {sparse.num_points} sparse points from the training views supervise depth (L_sd).")
+    return sparse

@@ -14,24 +14,11 @@ import sys
 import weakref
 from typing import Optional
 
-from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
-from torch import Tensor
 
+from frugalnerf_ns.novel_cameras import cameras_at
 from frugalnerf_ns.progress import FrameProgress
 from frugalnerf_ns.video_path import video_poses
-
-
-def cameras_at(poses: Float[Tensor, "n 3 4"], camera) -> Cameras:
-    """nerfstudio Cameras at ``poses`` with the pinhole intrinsics and image size of the first camera of
-    ``camera`` (novel-view rays, videos)."""
-    one = camera.reshape(-1)[:1].to("cpu")
-    n = poses.shape[0]
-    return Cameras(
-        camera_to_worlds=poses, fx=one.fx.expand(n, 1), fy=one.fy.expand(n, 1), cx=one.cx.expand(n, 1),
-        cy=one.cy.expand(n, 1), width=one.width.expand(n, 1), height=one.height.expand(n, 1),
-        camera_type=one.camera_type.expand(n, 1),
-    )
 
 
 def scene_video_cameras(datamanager, intrinsics: Cameras, num_frames: int, radius_scale: float = 1.0,
