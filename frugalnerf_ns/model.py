@@ -85,7 +85,10 @@ class FrugalNeRFModel(Model):
         self._register_load_state_dict_pre_hook(drop_metric_network_keys)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
+        # The geometric adaptation's scale fractions of every training step (recorded by get_metrics_dict),
+        # at the step under way: set before each step by the training schedule, as splatfacto keeps its own.
         self.scale_history = ScaleFractionHistory()
+        self.step = 0
         # Progress lines of a video render (frames, fps, ETA), set by the ns-render hook in video.py.
         self.frame_progress = None
         # Factor of the decaying loss weights (losses.loss_weight_schedule), set before every training step.
@@ -231,7 +234,7 @@ class FrugalNeRFModel(Model):
             adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views)
             if adaptation is not None:
                 stats = scale_statistics(adaptation.chosen_scale, self.field.num_scales)
-                self._last_scale_stats = stats
+                self.scale_history.record(self.step, stats)
                 metrics.update({name: torch.tensor(value) for name, value in stats.items()})
             return metrics
         target = objective.target_rgb(_check_batch(batch).image.to(self.device), self._eval_background())

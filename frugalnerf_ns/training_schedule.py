@@ -20,9 +20,10 @@ if TYPE_CHECKING:
 
 
 def training_callbacks(model: "FrugalNeRFModel", training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-    """What happens at given steps of training, in the order nerfstudio runs them: the loss-weight decay
-    before each step; after it the grid upsampling, the alpha mask (and the box shrink the first time) and the
-    record of the geometric adaptation's scale fractions; their plot at the end."""
+    """What happens at given steps of training, in the order nerfstudio runs them: the model learns the step and
+    its loss-weight decay before each step; after it come the grid upsampling, the alpha mask (and the box
+    shrink the first time) and, at checkpoints, the plot of the geometric adaptation's scale fractions (and at
+    the end)."""
     length = schedule_length(training_callback_attributes)
     upsample_steps = steps_at(model.config.upsample_at, length)
     alpha_mask_steps = steps_at(model.config.alpha_mask_at, length)
@@ -48,14 +49,13 @@ def training_callbacks(model: "FrugalNeRFModel", training_callback_attributes: T
             model.field.upsample(resolution_for_voxels(voxels, box), state)
             _restart_grid_optimizer(training_callback_attributes, state)
 
-    def record_scale_fractions(step: int) -> None:
-        stats = getattr(model, "_last_scale_stats", None)
-        if stats is None:
-            return
-        model.scale_history.record(step, stats)
-        trainer = training_callback_attributes.trainer
+    def follow_step(step: int) -> None:
+        model.step = step
+
+    def save_scale_fractions(step: int) -> None:
         # Written at every checkpoint too, so an interrupted run still has its plot.
-        if trainer is not None and step % trainer.config.steps_per_save == 0:
+        trainer = training_callback_attributes.trainer
+        if trainer is not None and model.scale_history.steps and step % trainer.config.steps_per_save == 0:
             model.scale_history.write(Path(trainer.base_dir))
 
     def plot_scale_fractions(step: int) -> None:
@@ -70,12 +70,13 @@ def training_callbacks(model: "FrugalNeRFModel", training_callback_attributes: T
             model.loss_schedule_factor = losses.loss_weight_schedule(step, length, model.config.loss_weight_decay)
 
     return [
+        TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], follow_step),
         TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], schedule_loss_weights),
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=tuple(sorted(set(upsample_steps)))),
         TrainingCallback(
             [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=tuple(sorted(set(alpha_mask_steps)))
         ),
-        TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], record_scale_fractions),
+        TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], save_scale_fractions),
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], plot_scale_fractions),
     ]
 
