@@ -2,7 +2,7 @@
 # when it is missing or was built from other pins.
 VENV := .venv
 
-.PHONY: setup demo test test-slow lint benchmark gate
+.PHONY: setup demo test test-e2e test-slow lint benchmark gate
 
 setup:
 	@bash scripts/setup_venv.sh
@@ -12,6 +12,11 @@ demo: setup
 
 test: setup
 	$(VENV)/bin/python -m pytest -q --durations=15
+
+# End-to-end runs of the real tools (a tradeoff sweep on Ray, a failing sweep, every preset's evaluation during
+# training, ...): CI runs them after `make test`.
+test-e2e: setup
+	$(VENV)/bin/python -m pytest -q --durations=15 -m e2e
 
 # Pyflakes' checks (undefined names, unused imports), clean on the whole tree; CI runs it.
 lint: setup

@@ -13,6 +13,9 @@ from tests import layout_fixtures as fx
 from tests.training_helpers import preset_config, train
 
 PRESETS = sorted(load_preset_table())
+#: Run by ``make test``: the paper's preset, the tiny one and the DTU CPU preset (the eval-mask path); the other
+#: presets differ from these only in numbers and run with the end-to-end set (``make test-e2e``, CI).
+QUICK = {"frugalnerf", "frugalnerf-tiny", "frugalnerf-dtu-cpu"}
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +31,7 @@ def test_every_preset_is_registered_here():
             "frugalnerf-cpu", "frugalnerf-dtu-cpu"} <= set(PRESETS)
 
 
-@pytest.mark.parametrize("preset", PRESETS)
+@pytest.mark.parametrize("preset", [p if p in QUICK else pytest.param(p, marks=pytest.mark.e2e) for p in PRESETS])
 def test_preset_evaluates_during_training_and_saves(preset, procedural_scene, masked_scene, tmp_path, monkeypatch):
     dtu = "dtu" in preset
     data = masked_scene if dtu else procedural_scene
@@ -70,3 +73,5 @@ def test_preset_evaluates_during_training_and_saves(preset, procedural_scene, ma
     assert set(all_images) & {"psnr", "ssim", "lpips"} == with_lpips
     # The final checkpoint is written after the evaluations.
     assert (trainer.checkpoint_dir / "step-000000001.ckpt").is_file()
+    if preset == "frugalnerf":  # the GPU preset itself trains on a CPU: the paper's 16 XY density components
+        assert trainer.pipeline.model.field.density_grid.planes[0].shape[1] == 16

@@ -82,6 +82,7 @@ def test_a_stop_signal_saves_the_steps_done_and_exits_non_zero(procedural_scene,
         assert saved_steps(tmp_path / "resumed") == [step + 3]
 
 
+@pytest.mark.e2e
 def test_a_second_ctrl_c_quits_at_once_without_waiting_for_the_save(procedural_scene, tmp_path):
     # Steps of 16k rays take long enough that the second Ctrl-C lands while the first waits for the step.
     proc = start_training(procedural_scene, tmp_path, "--pipeline.datamanager.train-num-rays-per-batch", "16384")

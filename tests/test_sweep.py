@@ -162,6 +162,7 @@ def local_ray():
     ray.shutdown()
 
 
+@pytest.mark.e2e
 def test_sweep_reports_a_failed_run_finishes_the_others_and_skips_them_next_time(local_ray, procedural_scene, tmp_path):
     from frugalnerf_ns.sweep.cli import run_sweep, write_report
 

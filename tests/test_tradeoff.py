@@ -5,14 +5,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.helpers import load_script
 
 SCRIPT = Path(__file__).parents[1] / "scripts" / "tradeoff.py"
 
 
 def test_a_budget_is_only_the_iterations_and_the_schedule_follows():
-    from frugalnerf_ns.training_schedule import steps_at
     from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.training_schedule import steps_at
 
     assert load_script("tradeoff").budget_args("frugalnerf-cpu", 500) == ["--max-num-iterations", "500"]  # preset: 1500
     model = build_trainer_config("frugalnerf-cpu").pipeline.model
@@ -30,6 +32,7 @@ def test_pareto_front_keeps_only_undominated_runs():
     assert [p["run"] for p in tradeoff.pareto_front(points, "lpips", False)] == ["a", "b"]
 
 
+@pytest.mark.e2e
 def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tmp_path):
     out = tmp_path / "tradeoff"
     result = subprocess.run(

@@ -10,6 +10,8 @@ import urllib.request
 from pathlib import Path
 from typing import List, Tuple
 
+import pytest
+
 BIN = Path(sys.executable).parent
 JPEG, PNG = b"\xff\xd8\xff", b"\x89PNG"
 
@@ -104,6 +106,26 @@ def test_viewer_serves_the_page_and_renders_a_frame_for_a_websocket_client(train
     assert process.returncode is not None
 
 
+def test_without_a_terminal_the_viewer_lets_training_end(monkeypatch):
+    """The decision the end-to-end test below checks in a real ns-train: nerfstudio's viewer keeps a finished
+    run alive until ctrl+c, which nobody can press without a terminal (CI, nohup, a job queue)."""
+    from frugalnerf_ns import presets
+
+    class Stdin:
+        def __init__(self, tty):
+            self.tty = tty
+
+        def isatty(self):
+            return self.tty
+
+    for tty, quits in ((False, True), (True, False)):
+        monkeypatch.setattr(presets.sys, "stdin", Stdin(tty))
+        assert presets.build_trainer_config("frugalnerf-tiny").viewer.quit_on_train_completion is quits
+    monkeypatch.setattr(presets.sys, "stdin", None)
+    assert presets.build_trainer_config("frugalnerf-tiny").viewer.quit_on_train_completion is True
+
+
+@pytest.mark.e2e
 def test_training_with_the_viewer_exits_when_run_without_a_terminal(procedural_scene, tmp_path):
     """ns-train's default viewer waits for ctrl+c after training; with no terminal attached it must not."""
     port = free_port()
