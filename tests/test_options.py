@@ -2,16 +2,12 @@
 leaves no run folder behind; running out of memory is one line too."""
 
 import math
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 
 from frugalnerf_ns.options import OptionError, option_problems, validate_options
 from frugalnerf_ns.presets import apply_override, build_trainer_config, load_preset_table
-
-BIN = Path(sys.executable).parent
+from tests.training_helpers import ns_train_main, preset_config
 
 
 @pytest.mark.parametrize("preset", sorted(load_preset_table()))
@@ -59,34 +55,23 @@ def test_auto_grid_ignores_final_voxels_and_several_problems_are_counted():
         validate_options(config)
 
 
-def ns_train(*args, timeout=300):
-    return subprocess.run([str(BIN / "ns-train"), *map(str, args)], capture_output=True, text=True, timeout=timeout)
-
-
 def test_bad_option_and_bad_data_stop_before_training_and_leave_no_run_folder(procedural_scene, tmp_path):
     out = tmp_path / "outputs"
-    bad_option = ns_train("frugalnerf-tiny", "--data", procedural_scene, "--output-dir", out, "--vis", "tensorboard",
-                          "--pipeline.model.final-voxels", "0")
-    assert bad_option.returncode == 1
-    last = bad_option.stderr.strip().splitlines()[-1]
-    assert last.startswith("frugalnerf: error: --pipeline.model.final-voxels must be >=") and last.endswith("got 0")
-    assert "Traceback" not in bad_option.stderr
-    missing = ns_train("frugalnerf-tiny", "--data", tmp_path / "no-such-scene", "--output-dir", out, "--vis", "tensorboard")
-    assert missing.returncode == 1 and "Traceback" not in missing.stderr
-    assert missing.stderr.strip().splitlines()[-1].startswith("frugalnerf: error:")
+    said = ns_train_main(preset_config("frugalnerf-tiny", procedural_scene, out, pipeline__model__final_voxels=0))
+    assert said.startswith("frugalnerf: error: --pipeline.model.final-voxels must be >=") and said.endswith("got 0")
+    said = ns_train_main(preset_config("frugalnerf-tiny", tmp_path / "no-such-scene", out))
+    assert said.startswith("frugalnerf: error:")
     # nerfstudio wrote config.yml before set-up: nothing of either run is left.
     assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
 
 
 def test_a_batch_larger_than_memory_is_one_line(procedural_scene, tmp_path):
     # 10^12 rays: the first allocation (the patch indices, 320 GB) fails at once, before any page is touched.
-    result = ns_train("frugalnerf-tiny", "--data", procedural_scene, "--output-dir", tmp_path, "--vis", "tensorboard",
-                      "--pipeline.datamanager.train-num-rays-per-batch", str(10**12))
-    assert result.returncode == 1 and "Traceback" not in result.stderr
-    last = result.stderr.strip().splitlines()[-1]
-    assert last.startswith("frugalnerf: error: out of memory at step 0 (1000000000000 training + 256 novel rays per step")
-    assert "--pipeline.datamanager.train-num-rays-per-batch" in last
-    assert "asked for 320.0 GB" in last and "GB free" in last  # 4e10 patches x 8-byte indices, and the limit
+    said = ns_train_main(preset_config("frugalnerf-tiny", procedural_scene, tmp_path,
+                                       pipeline__datamanager__train_num_rays_per_batch=10**12))
+    assert said.startswith("frugalnerf: error: out of memory at step 0 (1000000000000 training + 256 novel rays per step")
+    assert "--pipeline.datamanager.train-num-rays-per-batch" in said
+    assert "asked for 320.0 GB" in said and "GB free" in said  # 4e10 patches x 8-byte indices, and the limit
 
 
 def test_out_of_memory_is_recognised_from_both_allocators():

@@ -34,3 +34,20 @@ def train(config):
     trainer.setup()
     trainer.train()
     return trainer
+
+
+def ns_train_main(config) -> str:
+    """``ns-train``'s own main (config.yml written, then set-up and training) in this process, for a run that
+    must stop with one line: returns that line (the SystemExit's message, what ns-train prints with status 1).
+    The real binary's exit status and stderr are tested once (tests/test_data_errors.py)."""
+    import pytest
+    from nerfstudio.scripts import train as ns_train
+    from nerfstudio.utils import writer
+
+    writer.EVENT_WRITERS.clear()
+    writer.EVENT_STORAGE.clear()
+    with pytest.raises(SystemExit) as stopped:
+        ns_train.main(config)
+    message = stopped.value.code
+    assert isinstance(message, str) and "\n" not in message, message
+    return message
