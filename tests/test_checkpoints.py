@@ -1,10 +1,7 @@
-"""Atomic checkpoints and loading the newest intact one: unit level (no training) and through ns-eval and
-ns-train --load-dir on a trained run whose newest checkpoint is cut short."""
+"""Atomic checkpoints and loading the newest intact one: unit level (no training) and through ns-eval's and
+ns-train --load-dir's own code (in-process) on a trained run whose newest checkpoint is cut short."""
 
 import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -16,8 +13,7 @@ from frugalnerf_ns.checkpoints import (
     newest_intact_checkpoint,
     write_checkpoint,
 )
-
-BIN = Path(sys.executable).parent
+from tests.training_helpers import preset_config, train
 
 
 def state(step):
@@ -118,28 +114,25 @@ def run_with_cut_checkpoint(trained_run, tmp_path_factory):
     return copy, intact, cut
 
 
-def test_ns_eval_loads_the_newest_intact_checkpoint(run_with_cut_checkpoint, tmp_path):
+def test_ns_eval_loads_the_newest_intact_checkpoint(run_with_cut_checkpoint, tmp_path, capsys):
+    from nerfstudio.scripts.eval import ComputePSNR
+
     run_dir, intact, cut = run_with_cut_checkpoint
     out = tmp_path / "eval.json"
-    result = subprocess.run(
-        [str(BIN / "ns-eval"), "--load-config", str(run_dir / "config.yml"), "--output-path", str(out)],
-        capture_output=True, text=True, timeout=600,
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    said = " ".join((result.stdout + result.stderr).split())
-    assert f"{cut.name} is unreadable" in said and "Traceback" not in result.stderr
+    ComputePSNR(load_config=run_dir / "config.yml", output_path=out).main()  # ns-eval's own main, in-process
+    captured = capsys.readouterr()
+    said = " ".join((captured.out + captured.err).split())
+    assert f"{cut.name} is unreadable" in said
     assert out.is_file() and str(intact.name) in said
 
 
-def test_resume_skips_a_cut_checkpoint(run_with_cut_checkpoint, procedural_scene, tmp_path):
+def test_resume_skips_a_cut_checkpoint(run_with_cut_checkpoint, procedural_scene, tmp_path, capsys):
     run_dir, intact, cut = run_with_cut_checkpoint
-    result = subprocess.run(
-        [str(BIN / "ns-train"), "frugalnerf-tiny", "--data", str(procedural_scene), "--output-dir", str(tmp_path),
-         "--vis", "tensorboard", "--load-dir", str(run_dir / "nerfstudio_models"), "--max-num-iterations", "2"],
-        capture_output=True, text=True, timeout=600,
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    said = " ".join((result.stdout + result.stderr).split())
+    # ns-train --load-dir, in-process: nerfstudio counts --max-num-iterations from the loaded step.
+    train(preset_config("frugalnerf-tiny", procedural_scene, tmp_path, load_dir=run_dir / "nerfstudio_models",
+                        max_num_iterations=2))
+    captured = capsys.readouterr()
+    said = " ".join((captured.out + captured.err).split())
     assert f"{cut.name} is unreadable" in said and "Done loading Nerfstudio checkpoint from" in said
     step = int(intact.stem.split("-")[1])
     resumed = sorted(tmp_path.rglob("step-*.ckpt"))
