@@ -19,11 +19,9 @@ gpu_check = load_script("gpu_check")
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
-def test_without_cuda_one_line_and_exit_zero(tmp_path):
-    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_check.py"), "--out", str(tmp_path)],
-                          capture_output=True, text=True)
-    assert proc.returncode == 0
-    lines = proc.stdout.strip().splitlines()
+def test_without_cuda_one_line_and_exit_zero(tmp_path, capsys):
+    assert gpu_check.main(["--out", str(tmp_path)]) == 0  # the script exits with main's return value
+    lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("gpu_check: no CUDA device")
     assert not (tmp_path / "gpu_check.json").exists()
 

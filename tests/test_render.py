@@ -1,5 +1,6 @@
-"""nerfstudio's render tools on a trained FrugalNeRF run: ns-render spiral / interpolate / dataset and the
-one-line spiral script, with no ffmpeg on the system PATH."""
+"""nerfstudio's render tools on a trained FrugalNeRF run: ns-render spiral / interpolate / dataset / camera-path
+and the one-line spiral script, with no ffmpeg on the system PATH. The real ns-render and ns-export binaries
+run once each; the other renders call ns-render's own classes in this process."""
 
 import json
 import os
@@ -10,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+
+from tests.helpers import load_script
 
 BIN = Path(sys.executable).parent
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +44,18 @@ def camera_size(scene):
     return int(transforms["w"]), int(transforms["h"])
 
 
-def test_spiral_and_interpolate_videos_without_a_system_ffmpeg(trained_run, procedural_scene, tmp_path):
+@pytest.fixture
+def bundled_ffmpeg_only(monkeypatch):
+    """In this process, what a video command gets from the plugin: the bundled ffmpeg, none from the system."""
+    from nerfstudio.scripts import render  # noqa: F401  (imported as ns-render does, before any pipeline)
+
+    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
+
+    monkeypatch.setenv("PATH", str(ROOT / "no-programs-here"))  # restored after the test
+    assert provide_ffmpeg() is not None
+
+
+def test_ns_render_spiral_without_a_system_ffmpeg(trained_run, procedural_scene, tmp_path):
     _, run_dir = trained_run
     config = run_dir / "config.yml"
     width, height = camera_size(procedural_scene)
@@ -50,39 +64,42 @@ def test_spiral_and_interpolate_videos_without_a_system_ffmpeg(trained_run, proc
     assert video_frames(spiral) == (6, width, height)
     # The real ns-render used the scene's path (video.py) and printed progress lines.
     assert "frugalnerf render: spiral of 6 frames" in result.stdout and "frame 6/6" in result.stdout, result.stdout[-2000:]
-    depth = tmp_path / "interp-depth.mp4"
-    run([
-        BIN / "ns-render", "interpolate", "--load-config", config, "--output-path", depth, "--interpolation-steps", "4",
-        "--frame-rate", "8", "--rendered-output-names", "depth",
-    ])
-    # Two evaluation cameras: one transition of 4 steps.
-    count, w, h = video_frames(depth)
-    assert (count, w, h) == (4, width, height)
 
 
-def test_render_spiral_script_prints_where_the_video_is(trained_run, procedural_scene, tmp_path):
+def test_interpolated_depth_video(trained_run, procedural_scene, tmp_path, bundled_ffmpeg_only):
+    from nerfstudio.scripts.render import RenderInterpolated
+
     _, run_dir = trained_run
+    depth = tmp_path / "interp-depth.mp4"
+    RenderInterpolated(load_config=run_dir / "config.yml", output_path=depth, interpolation_steps=4, frame_rate=8,
+                       rendered_output_names=["depth"]).main()
+    # Two evaluation cameras: one transition of 4 steps.
+    assert video_frames(depth) == (4, *camera_size(procedural_scene))
+
+
+def test_render_spiral_script_prints_where_the_video_is(trained_run, procedural_scene, tmp_path, monkeypatch, capsys):
+    _, run_dir = trained_run
+    monkeypatch.setenv("PATH", str(ROOT / "no-programs-here"))  # the script brings the bundled ffmpeg itself
     out = tmp_path / "one-line.mp4"
-    result = run([sys.executable, ROOT / "scripts" / "render_spiral.py", run_dir / "config.yml", "--output", out, "--seconds", "0.5", "--frame-rate", "8"])
-    assert f"wrote {out.resolve()}" in result.stdout
+    load_script("render_spiral").main([str(run_dir / "config.yml"), "--output", str(out), "--seconds", "0.5",
+                                       "--frame-rate", "8"])
+    assert f"wrote {out.resolve()}" in capsys.readouterr().out
     width, height = camera_size(procedural_scene)
     assert video_frames(out) == (4, width, height)
 
 
 def test_render_spiral_script_rejects_a_missing_config(tmp_path):
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "render_spiral.py"), str(tmp_path / "nope.yml")], capture_output=True, text=True
-    )
-    assert result.returncode != 0 and "is not a file" in result.stderr and "Traceback" not in result.stderr
+    with pytest.raises(SystemExit, match="is not a file"):
+        load_script("render_spiral").main([str(tmp_path / "nope.yml")])
 
 
 def test_dataset_render_matches_ns_eval_psnr(trained_run, tmp_path):
     results, run_dir = trained_run
     out = tmp_path / "dataset"
-    run([
-        BIN / "ns-render", "dataset", "--load-config", run_dir / "config.yml", "--output-path", out, "--split", "test",
-        "--rendered-output-names", "rgb", "gt-rgb", "--image-format", "png",
-    ])
+    from nerfstudio.scripts.render import DatasetRender
+
+    DatasetRender(load_config=run_dir / "config.yml", output_path=out, split="test",
+                  rendered_output_names=["rgb", "gt-rgb"], image_format="png").main()
     rendered = sorted((out / "test" / "rgb").rglob("*.png"))
     truth = sorted((out / "test" / "gt-rgb").rglob("*.png"))
     assert len(rendered) == len(truth) >= 2
@@ -114,7 +131,7 @@ def test_ns_export_pointcloud_writes_a_ply(trained_run, tmp_path):
     assert vertices >= 1000 and "property uchar red" in header
 
 
-def test_camera_path_render_of_a_viewer_style_path(trained_run, procedural_scene, tmp_path):
+def test_camera_path_render_of_a_viewer_style_path(trained_run, procedural_scene, tmp_path, bundled_ffmpeg_only):
     """A camera path in the format the viewer saves (4x4 camera-to-world rows, vertical fov in degrees)."""
     import torch
     from nerfstudio.utils.eval_utils import eval_setup
@@ -133,6 +150,7 @@ def test_camera_path_render_of_a_viewer_style_path(trained_run, procedural_scene
         "camera_path": frames,
     }))
     video = tmp_path / "path.mp4"
-    run([BIN / "ns-render", "camera-path", "--load-config", run_dir / "config.yml", "--camera-path-filename", path,
-         "--output-path", video])
+    from nerfstudio.scripts.render import RenderCameraPath
+
+    RenderCameraPath(load_config=run_dir / "config.yml", camera_path_filename=path, output_path=video).main()
     assert video_frames(video) == (5, 64, 48)

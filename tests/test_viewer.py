@@ -175,26 +175,22 @@ def test_viewer_outputs_offer_every_scale_and_the_pseudo_gt_scale_map(trained_ru
         assert sorted(model.get_outputs_for_camera(camera)) == ["accumulation", "depth", "rgb"]
 
 
-def test_viewer_benchmark_script_times_every_render_mode(trained_run, tmp_path):
+def test_viewer_benchmark_script_times_every_render_mode(trained_run, tmp_path, capsys):
     import json
+
+    from tests.helpers import load_script
 
     _, run_dir = trained_run
     out = tmp_path / "viewer.json"
-    result = subprocess.run(
-        [sys.executable, str(Path(__file__).parents[1] / "scripts" / "benchmark_viewer.py"), str(run_dir / "config.yml"),
-         "--max-res", "64", "--repeats", "1", "--out", str(out)],
-        capture_output=True, text=True, timeout=300,
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
+    script = load_script("benchmark_viewer")
+    script.main([str(run_dir / "config.yml"), "--max-res", "64", "--repeats", "1", "--out", str(out)])
     rows = json.loads(out.read_text())
     assert [row["mode"] for row in rows] == ["all scales + scale map", "all scales", "full scale only"]
     for row in rows:
         assert row["frame"] == "64x48" and row["frame_seconds"] > 0 and row["rays_per_second"] > 0
         width, height = map(int, row["preview"].split("x"))
         assert height >= 30 and abs(width / height - 4 / 3) < 0.1
-    assert "| full scale only | 64x48 |" in result.stdout
-    missing = subprocess.run(
-        [sys.executable, str(Path(__file__).parents[1] / "scripts" / "benchmark_viewer.py"), str(tmp_path / "nope.yml")],
-        capture_output=True, text=True, timeout=60,
-    )
-    assert missing.returncode == 2 and "no config at" in missing.stderr and "Traceback" not in missing.stderr
+    assert "| full scale only | 64x48 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as missing:
+        script.main([str(tmp_path / "nope.yml")])
+    assert missing.value.code == 2 and "no config at" in capsys.readouterr().err
