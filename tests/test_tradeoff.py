@@ -64,6 +64,7 @@ def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tm
             assert image.format == "PNG" and min(image.size) > 300
 
 
+@pytest.mark.e2e
 def test_model_size_script_measures_fixed_and_auto_grids(procedural_scene, tmp_path):
     out = tmp_path / "sizes.json"
     result = subprocess.run(
