@@ -1,8 +1,13 @@
 """nerfstudio 1.1.5 checkpoints hold numpy scalars; torch >= 2.6 refuses them unless the plugin is imported."""
 
+import pickle
 import subprocess
 import sys
 import textwrap
+
+import numpy as np
+import pytest
+import torch
 
 SAVE_AND_LOAD = textwrap.dedent(
     """
@@ -29,18 +34,29 @@ def _run(tmp_path, mode, content="numpy"):
 
 
 def test_plain_torch_refuses_numpy_scalars(tmp_path):
+    # A fresh process: the plugin's allowance is process-wide, and this one has imported it.
     result = _run(tmp_path, "plain")
     assert result.returncode != 0
     assert "Unsupported global" in result.stderr and "numpy" in result.stderr
 
 
+def _save_and_load(path, payload):
+    """In this process, which imported the plugin (as every nerfstudio command that loads a run does)."""
+    import frugalnerf_ns  # noqa: F401
+
+    torch.save(payload, path)
+    return torch.load(path)  # weights_only=True is the default since torch 2.6
+
+
 def test_importing_the_plugin_allows_them(tmp_path):
-    result = _run(tmp_path, "plugin")
-    assert result.returncode == 0, result.stderr
-    assert "loaded 0.08" in result.stdout
+    payload = {"step": 3, "scheduler": {"base_lrs": [np.float64(0.08)], "dtype": np.dtype("float32")}}
+    loaded = _save_and_load(tmp_path / "plugin.ckpt", payload)
+    assert float(loaded["scheduler"]["base_lrs"][0]) == 0.08 and loaded["scheduler"]["dtype"] == np.float32
 
 
 def test_the_allowance_stays_narrow(tmp_path):
-    result = _run(tmp_path, "plugin", "evil")
-    assert result.returncode != 0
-    assert "Unsupported global" in result.stderr
+    import fractions
+
+    payload = {"step": 3, "evil": fractions.Fraction(1, 3)}  # an arbitrary global must stay forbidden
+    with pytest.raises(pickle.UnpicklingError, match="Unsupported global"):
+        _save_and_load(tmp_path / "evil.ckpt", payload)
