@@ -27,20 +27,21 @@ class ImageScorer:
         from torchmetrics.functional import structural_similarity_index_measure
 
         self.ssim = structural_similarity_index_measure
-        self._networks: Dict[str, object] = {}
+        self._lpips_built = False
+        self._lpips_network = None
         self._said_lpips_size = False
 
     def lpips_network(self):
         """The LPIPS network, built once; None (said once) when its weights are not installed."""
-        if "lpips" not in self._networks:
+        if not self._lpips_built:
             from frugalnerf_ns.lpips_offline import OfflineLPIPS
 
+            self._lpips_built = True
             try:
-                self._networks["lpips"] = OfflineLPIPS()
+                self._lpips_network = OfflineLPIPS()
             except FileNotFoundError as err:
                 CONSOLE.print(f"[bold yellow]frugalnerf: LPIPS is unavailable ({err}): metrics leave it out.")
-                self._networks["lpips"] = None
-        return self._networks["lpips"]
+        return self._lpips_network
 
     def lpips(self, images_0: Tensor, images_1: Tensor) -> Optional[Tensor]:
         """LPIPS distance (``OfflineLPIPS``), on the device of the images; None when LPIPS is unavailable."""
