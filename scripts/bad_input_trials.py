@@ -64,7 +64,7 @@ def user_line(proc: subprocess.CompletedProcess, needle: Optional[str]) -> str:
 
 
 def fixtures(root: Path) -> Dict[str, Path]:
-    from frugalnerf_ns.procedural_scene import write_procedural_scene
+    from frugalnerf_ns.data.procedural_scene import write_procedural_scene
 
     scene = write_procedural_scene(root / "scene")
     out: Dict[str, Path] = {"scene": scene}

@@ -40,9 +40,9 @@ def main(argv=None) -> list:
     import torch
     from nerfstudio.cameras.camera_paths import get_spiral_path
     from nerfstudio.utils.eval_utils import eval_setup
-    from frugalnerf_ns.lpips_offline import OfflineLPIPS
-    from frugalnerf_ns.offline_tools import score_test_view
-    from frugalnerf_ns.video import scene_video_cameras
+    from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.tools.offline_tools import score_test_view
+    from frugalnerf_ns.tools.video import scene_video_cameras
 
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
     pipeline.eval()

@@ -1,7 +1,7 @@
 """Train and evaluate FrugalNeRF (and optionally nerfstudio baselines) on the scenes of a config file: a
 front-end that builds a sweep grid from its options and runs it with ``frugalnerf-sweep``'s runner.
 
-Every run goes through ``python -m frugalnerf_ns.offline_tools`` (ns-train with offline LPIPS) and is scored
+Every run goes through ``python -m frugalnerf_ns.tools.offline_tools`` (ns-train with offline LPIPS) and is scored
 by the same evaluator (masked for DTU). Writes a Markdown table and JSON: per scene and the average, PSNR /
 SSIM / LPIPS / training time / checkpoint size / peak memory, side by side. Finished runs are kept in
 ``<out>/results.jsonl``: the same command again skips them (and retries failed ones once).
@@ -28,9 +28,9 @@ from typing import List, Optional
 
 import yaml
 
-from frugalnerf_ns.sweep.cli import run_sweep
-from frugalnerf_ns.sweep.grid import ROOT, SCENE_PRESET, GridError, expand, scene_data
-from frugalnerf_ns.sweep.report import scene_table
+from frugalnerf_ns.tools.sweep.cli import run_sweep
+from frugalnerf_ns.tools.sweep.grid import ROOT, SCENE_PRESET, GridError, expand, scene_data
+from frugalnerf_ns.tools.sweep.report import scene_table
 
 markdown = scene_table  # the table this script has always written
 

@@ -61,8 +61,8 @@ def all_pairs_pycolmap(images: List[np.ndarray], max_features: int) -> int:
 
 
 def time_views(data: Path, views: int, all_pairs: bool) -> Dict[str, float]:
-    from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig
-    from frugalnerf_ns.sparse_points import (
+    from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig
+    from frugalnerf_ns.data.sparse_points import (
         TriangulationOptions,
         build_tracks,
         extract_sift,
@@ -134,7 +134,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "startup_benchmark.json")
     args = parser.parse_args(argv)
 
-    from frugalnerf_ns.data import DataError
+    from frugalnerf_ns.data.input_checks import DataError
 
     rows = []
     for views in args.views:

@@ -32,8 +32,8 @@ def _trainer_config(method: str, args: argparse.Namespace):
     from nerfstudio.configs.method_configs import method_configs
     from nerfstudio.data.datamanagers.base_datamanager import VanillaDataManagerConfig
 
-    from frugalnerf_ns.data import FrugalNerfstudioDataParserConfig
-    from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.data.input_checks import FrugalNerfstudioDataParserConfig
+    from frugalnerf_ns.run.presets import build_trainer_config
 
     dataparser = FrugalNerfstudioDataParserConfig(data=args.scene, center_method="focus")
     if method.startswith("frugalnerf"):
@@ -71,9 +71,9 @@ def run_worker(method: str, args: argparse.Namespace) -> Dict[str, Any]:
     import torch
     from torchmetrics.functional import structural_similarity_index_measure
 
-    from frugalnerf_ns.lpips_offline import OfflineLPIPS
-    from frugalnerf_ns.offline_tools import patch_torchmetrics_lpips
-    from frugalnerf_ns.stepping import optimizers_and_callbacks, run_steps
+    from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.tools.offline_tools import patch_torchmetrics_lpips
+    from frugalnerf_ns.run.stepping import optimizers_and_callbacks, run_steps
 
     patch_torchmetrics_lpips()
     torch.manual_seed(0)
@@ -154,7 +154,7 @@ def main() -> None:
         return
 
     if not (args.scene / "transforms.json").exists():
-        from frugalnerf_ns.procedural_scene import write_procedural_scene
+        from frugalnerf_ns.data.procedural_scene import write_procedural_scene
 
         write_procedural_scene(args.scene)
     results = []

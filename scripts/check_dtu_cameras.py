@@ -44,8 +44,8 @@ def main(argv=None) -> None:
 
     from PIL import Image
 
-    from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
-    from frugalnerf_ns.sparse_points import (
+    from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
+    from frugalnerf_ns.data.sparse_points import (
         TriangulationOptions,
         build_tracks,
         extract_sift,

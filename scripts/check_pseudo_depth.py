@@ -72,10 +72,10 @@ def main(argv=None) -> None:
     from nerfstudio.cameras.rays import RayBundle
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from frugalnerf_ns.camera_conventions import llff_to_opengl
-    from frugalnerf_ns.dataparsers.llff import load_poses_bounds
-    from frugalnerf_ns.geometric_adaptation import pseudo_ground_truth_scale
-    from frugalnerf_ns.reprojection import project_to_camera
+    from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
+    from frugalnerf_ns.data.dataparsers.llff import load_poses_bounds
+    from frugalnerf_ns.model.geometric_adaptation import pseudo_ground_truth_scale
+    from frugalnerf_ns.geometry.reprojection import project_to_camera
 
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
     model = pipeline.model

@@ -54,8 +54,8 @@ def find_or_install_chromium() -> str:
 
 
 def train_tiny_run(workdir: Path) -> Path:
-    from frugalnerf_ns.demo import train_and_eval
-    from frugalnerf_ns.procedural_scene import write_procedural_scene
+    from frugalnerf_ns.tools.demo import train_and_eval
+    from frugalnerf_ns.data.procedural_scene import write_procedural_scene
 
     scene = write_procedural_scene(workdir / "scene")
     results = train_and_eval(scene, workdir / "outputs")

@@ -19,7 +19,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from frugalnerf_ns.objective import target_rgb
+from frugalnerf_ns.model.objective import target_rgb
 
 
 def depth_picture(depth: torch.Tensor, lo: float, hi: float) -> np.ndarray:
@@ -29,7 +29,7 @@ def depth_picture(depth: torch.Tensor, lo: float, hi: float) -> np.ndarray:
 
 
 def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tensor]) -> tuple:
-    from frugalnerf_ns.metrics import capped_psnr, masked_psnr
+    from frugalnerf_ns.scoring.metrics import capped_psnr, masked_psnr
 
     camera = dataset.cameras[index : index + 1].to(model.device)
     bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
@@ -98,7 +98,7 @@ def main(argv=None) -> None:
     from nerfstudio.utils.eval_utils import eval_setup
     from PIL import Image
 
-    from frugalnerf_ns.offline_tools import patch_torchmetrics_lpips
+    from frugalnerf_ns.tools.offline_tools import patch_torchmetrics_lpips
 
     patch_torchmetrics_lpips()  # nerfstudio's methods build torchmetrics' LPIPS, which would download weights
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")

@@ -43,7 +43,7 @@ from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence
 
 import torch
 
-from frugalnerf_ns.stepping import run_steps
+from frugalnerf_ns.run.stepping import run_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -111,7 +111,7 @@ def walk(name: str, value: Any) -> Iterator[tuple]:
 @contextlib.contextmanager
 def count_cpu_path_calls() -> Iterator[Dict[str, int]]:
     """Count calls of the CPU-only grid-sample backward (``_BilinearSampleCPU``), split by the plane's device."""
-    from frugalnerf_ns import tensorial
+    from frugalnerf_ns.field import tensorial
 
     counts = {"cpu": 0, "cuda": 0}
     original = tensorial._BilinearSampleCPU.apply
@@ -131,9 +131,9 @@ def count_cpu_path_calls() -> Iterator[Dict[str, int]]:
 def build_pipeline(preset: str, data: Path, device: torch.device, dry_run: bool, train_views=None,
                    final_grid: Optional[int] = None):
     """The preset's pipeline on ``data`` (training split), grid upsampled to its final size, plus optimisers."""
-    from frugalnerf_ns.field import resolution_for_voxels
-    from frugalnerf_ns.presets import build_trainer_config
-    from frugalnerf_ns.stepping import optimizers_and_callbacks
+    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
+    from frugalnerf_ns.run.presets import build_trainer_config
+    from frugalnerf_ns.run.stepping import optimizers_and_callbacks
 
     config = build_trainer_config(preset)
     config.pipeline.datamanager.data = data
@@ -157,7 +157,7 @@ def build_pipeline(preset: str, data: Path, device: torch.device, dry_run: bool,
 
 def check_preset(preset: str, scene: str, data: Path, device: torch.device, steps: int, dry_run: bool,
                  train_views=None) -> Dict[str, Any]:
-    from frugalnerf_ns.color_mlp import tcnn_available
+    from frugalnerf_ns.field.color_mlp import tcnn_available
 
     reset_peak(device)
     row: Dict[str, Any] = {"part": "presets", "preset": preset, "scene": scene}
@@ -194,7 +194,7 @@ def check_preset(preset: str, scene: str, data: Path, device: torch.device, step
 
 
 def part_presets(args, device: torch.device, scenes: Dict[str, Dict[str, Any]]) -> List[Dict[str, Any]]:
-    from frugalnerf_ns.presets import load_preset_table
+    from frugalnerf_ns.run.presets import load_preset_table
 
     presets = args.presets or list(load_preset_table())
     rows = []
@@ -209,8 +209,8 @@ def part_presets(args, device: torch.device, scenes: Dict[str, Dict[str, Any]]) 
 
 # ---- part: paper preset trained on fern ------------------------------------------------------------------
 def part_paper(args, device: torch.device, scenes: Dict[str, Dict[str, Any]]) -> List[Dict[str, Any]]:
-    from frugalnerf_ns.sweep.grid import RunSpec
-    from frugalnerf_ns.sweep.runner import execute
+    from frugalnerf_ns.tools.sweep.grid import RunSpec
+    from frugalnerf_ns.tools.sweep.runner import execute
 
     if args.dry_run:
         spec = RunSpec("procedural", 0, "frugalnerf-tiny", "full", str(scenes["procedural"]["data"]), [],
@@ -260,7 +260,7 @@ def part_speed(args, device: torch.device, scenes: Dict[str, Dict[str, Any]]) ->
 def part_grid_sample(args, device: torch.device, scenes) -> List[Dict[str, Any]]:
     import torch.nn.functional as F
 
-    from frugalnerf_ns.tensorial import _BilinearSampleCPU
+    from frugalnerf_ns.field.tensorial import _BilinearSampleCPU
 
     # The paper preset's largest plane: 48 appearance components on 640 x 640; 4096 + 4096 rays x ~100 samples.
     channels, size, points = (12, 64, 20_000) if args.dry_run else (48, 640, 800_000)
@@ -362,7 +362,7 @@ def torch_mlp_from_tcnn(params: torch.Tensor, in_dim: int, hidden: int, row_majo
 
 
 def part_tcnn(args, device: torch.device, scenes) -> List[Dict[str, Any]]:
-    from frugalnerf_ns.color_mlp import ColorMLP, tcnn_available
+    from frugalnerf_ns.field.color_mlp import ColorMLP, tcnn_available
 
     if not tcnn_available():
         why = "no CUDA device" if device.type != "cuda" else "tinycudann does not import"
@@ -406,7 +406,7 @@ def machine_description(device: torch.device) -> Dict[str, Any]:
         info.update({"gpu": props.name, "gpu_memory_gib": props.total_memory / 2**30, "cuda": torch.version.cuda})
     else:
         info["cpu"] = platform.processor() or platform.machine()
-    from frugalnerf_ns.sweep.runner import git_commit
+    from frugalnerf_ns.tools.sweep.runner import git_commit
 
     info["commit"] = git_commit()
     return info
@@ -457,7 +457,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
 
     with tempfile.TemporaryDirectory() as tmp:
-        from frugalnerf_ns.procedural_scene import write_procedural_scene
+        from frugalnerf_ns.data.procedural_scene import write_procedural_scene
 
         scenes: Dict[str, Dict[str, Any]] = {"procedural": {"data": write_procedural_scene(Path(tmp) / "procedural")}}
         if "fern" in args.scenes and (args.fern / "poses_bounds.npy").exists():

@@ -29,8 +29,8 @@ def measure(preset: str, data: Path, parser_args: List[str], auto_grid: bool) ->
     import torch
     import tyro
 
-    from frugalnerf_ns.field import resolution_for_voxels
-    from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
+    from frugalnerf_ns.run.presets import build_trainer_config
 
     config = build_trainer_config(preset)
     config.pipeline.model.auto_grid = auto_grid

@@ -31,8 +31,8 @@ def build_pipeline(args):
         # "val" sets the datamanager up for training (patches, novel and sparse-depth rays).
         _, pipeline, _, _ = eval_setup(args.load_config, test_mode="val")
         return pipeline
-    from frugalnerf_ns.field import resolution_for_voxels
-    from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
+    from frugalnerf_ns.run.presets import build_trainer_config
 
     config = build_trainer_config(args.preset)
     config.pipeline.datamanager.data = args.data

@@ -15,7 +15,7 @@ import lpips
 import numpy as np
 import torch
 
-from frugalnerf_ns.lpips_offline import find_alexnet_weights
+from frugalnerf_ns.scoring.lpips_offline import find_alexnet_weights
 from tests.lpips_fixture import fixed_image_pair
 
 

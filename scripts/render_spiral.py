@@ -4,7 +4,7 @@
 
 Runs nerfstudio's own ``ns-render spiral`` (so the result is what ns-render gives: for a FrugalNeRF run the
 scene's spiral or orbit around the training cameras, full scale only, with progress lines; see
-``frugalnerf_ns/video.py``) and writes ``<run>/renders/spiral.mp4`` (``spiral-depth.mp4`` with --depth) unless
+``frugalnerf_ns/tools/video.py``) and writes ``<run>/renders/spiral.mp4`` (``spiral-depth.mp4`` with --depth) unless
 --output says otherwise.
 """
 
@@ -27,7 +27,7 @@ def main(argv=None) -> Path:
     if not args.config.is_file():
         sys.exit(f"render_spiral: error: {args.config} is not a file (pass <run>/config.yml)")
 
-    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
+    from frugalnerf_ns.tools.ffmpeg_path import provide_ffmpeg
     from nerfstudio.scripts.render import SpiralRender
 
     provide_ffmpeg()  # this script writes a video like ns-render: the bundled ffmpeg when PATH has none

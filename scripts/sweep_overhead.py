@@ -25,7 +25,7 @@ from typing import Any, Dict, List
 
 
 def specs_for(scene: Path, runs: int, iterations: int):
-    from frugalnerf_ns.sweep.grid import RunSpec, seed_args
+    from frugalnerf_ns.tools.sweep.grid import RunSpec, seed_args
 
     return [RunSpec("procedural", 3, "frugalnerf-tiny", "full", str(scene), [],
                     ["--max-num-iterations", str(iterations), *seed_args("frugalnerf-tiny", seed)], seed)
@@ -51,9 +51,9 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("outputs/sweep_overhead"))
     args = parser.parse_args(argv)
 
-    from frugalnerf_ns.procedural_scene import write_procedural_scene
-    from frugalnerf_ns.sweep.cli import run_sweep
-    from frugalnerf_ns.sweep.runner import execute
+    from frugalnerf_ns.data.procedural_scene import write_procedural_scene
+    from frugalnerf_ns.tools.sweep.cli import run_sweep
+    from frugalnerf_ns.tools.sweep.runner import execute
 
     args.out.mkdir(parents=True, exist_ok=True)
     rows: List[Dict[str, Any]] = []

@@ -28,9 +28,9 @@ from typing import List, Optional, Sequence
 
 import yaml
 
-from frugalnerf_ns.sweep.cli import run_sweep
-from frugalnerf_ns.sweep.grid import ROOT, RunSpec, scene_data, scene_parser, seed_args
-from frugalnerf_ns.sweep.report import anytime_rows, anytime_table, pareto_front, plot  # noqa: F401 (pareto_front: tests)
+from frugalnerf_ns.tools.sweep.cli import run_sweep
+from frugalnerf_ns.tools.sweep.grid import ROOT, RunSpec, scene_data, scene_parser, seed_args
+from frugalnerf_ns.tools.sweep.report import anytime_rows, anytime_table, pareto_front, plot  # noqa: F401 (pareto_front: tests)
 
 markdown = anytime_table
 
@@ -98,7 +98,7 @@ def main(argv=None) -> None:
         for budget in args.budgets:
             runs.append(spec(f"{preset}/{budget}", preset, scene, views, data, parser_args, budget_args(preset, budget),
                              min(args.anytime_every, budget), args.seed))
-    from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.run.presets import build_trainer_config
 
     own_lower = build_trainer_config(presets[0]).pipeline.model.num_lower_scales
     for lower in args.scales:

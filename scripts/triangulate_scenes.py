@@ -17,9 +17,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
-from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
-from frugalnerf_ns.sparse_points import points_inside_box, triangulate_training_views
+from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
+from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
+from frugalnerf_ns.data.sparse_points import points_inside_box, triangulate_training_views
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = {

@@ -55,14 +55,14 @@ def _hidden(real):
     return lookup
 md.version, md.distribution = _hidden(md.version), _hidden(md.distribution)  # what RequirementCache asks
 scene, out = Path(sys.argv[1]), Path(sys.argv[2])
-from frugalnerf_ns.procedural_scene import write_procedural_scene
+from frugalnerf_ns.data.procedural_scene import write_procedural_scene
 write_procedural_scene(scene)
 sys.argv = ["ns-train", "frugalnerf-tiny", "--data", str(scene), "--output-dir", str(out), "--vis", "tensorboard",
             "--max-num-iterations", "3", "--machine.device-type", "cpu", "--viewer.quit-on-train-completion", "True"]
 from nerfstudio.scripts import train
 train.entrypoint()
 import nerfstudio.scripts.eval, nerfstudio.scripts.render, nerfstudio.scripts.viewer.run_viewer
-import nerfstudio.viewer.viewer, frugalnerf_ns.offline_tools, frugalnerf_ns.lpips_offline
+import nerfstudio.viewer.viewer, frugalnerf_ns.tools.offline_tools, frugalnerf_ns.scoring.lpips_offline
 print("MODULES " + json.dumps(sorted(sys.modules)))
 """
 

@@ -3,7 +3,7 @@ from pathlib import Path
 
 import pytest
 
-from frugalnerf_ns.procedural_scene import write_procedural_scene
+from frugalnerf_ns.data.procedural_scene import write_procedural_scene
 
 os.environ.setdefault("PYTHONWARNINGS", "ignore")
 
@@ -18,7 +18,7 @@ def procedural_scene(tmp_path_factory) -> Path:
 def trained_run(procedural_scene, tmp_path_factory):
     """frugalnerf-tiny trained on the procedural scene with ns-train and scored with ns-eval, once per session:
     (ns-eval's results, run folder)."""
-    from frugalnerf_ns.demo import train_and_eval
+    from frugalnerf_ns.tools.demo import train_and_eval
 
     out = tmp_path_factory.mktemp("outputs")
     results = train_and_eval(procedural_scene, out)

@@ -10,10 +10,10 @@ from pathlib import Path
 import torch
 from nerfstudio.data.scene_box import SceneBox
 
-from frugalnerf_ns.datamanager import FrugalDataManagerConfig
-from frugalnerf_ns.dataparsers.nerfstudio_format import FewShotNerfstudioDataParserConfig
-from frugalnerf_ns.model import FrugalNeRFModelConfig
-from frugalnerf_ns.reprojection import unproject_along_rays
+from frugalnerf_ns.data.datamanager import FrugalDataManagerConfig
+from frugalnerf_ns.data.dataparsers.nerfstudio_format import FewShotNerfstudioDataParserConfig
+from frugalnerf_ns.model.frugalnerf import FrugalNeRFModelConfig
+from frugalnerf_ns.geometry.reprojection import unproject_along_rays
 
 ROOT = Path(__file__).resolve().parents[1]
 

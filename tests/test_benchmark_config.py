@@ -47,8 +47,8 @@ def test_markdown_table_shows_the_shorter_test_list_beside_the_full_one():
 
 
 def test_torchmetrics_lpips_is_replaced_by_the_offline_one():
-    from frugalnerf_ns.lpips_offline import OfflineLPIPS
-    from frugalnerf_ns.offline_tools import patch_torchmetrics_lpips
+    from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.tools.offline_tools import patch_torchmetrics_lpips
     from tests.lpips_fixture import fixed_image_pair
 
     patch_torchmetrics_lpips()
@@ -62,7 +62,7 @@ def test_torchmetrics_lpips_is_replaced_by_the_offline_one():
 
 
 def test_ablation_variants_name_real_options_of_the_presets():
-    from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.run.presets import build_trainer_config
 
     config = yaml.safe_load((ROOT / "configs" / "benchmark_scenes.yaml").read_text())
     assert set(config["variants"]) >= {"no-geo", "no-novel", "single-scale"}
@@ -78,8 +78,8 @@ def test_ablation_variants_name_real_options_of_the_presets():
 
 
 def test_variant_runs_keep_the_registered_method_name_in_their_path(tmp_path):
-    from frugalnerf_ns.sweep.grid import expand
-    from frugalnerf_ns.sweep.runner import run_location
+    from frugalnerf_ns.tools.sweep.grid import expand
+    from frugalnerf_ns.tools.sweep.runner import run_location
 
     config = ROOT / "configs" / "benchmark_scenes.yaml"
     full, no_geo, tensorf = expand(config, ["fern"], [2], ["frugalnerf-cpu", "tensorf"],
@@ -104,7 +104,7 @@ def test_markdown_table_with_seeds_adds_mean_and_spread_rows():
     assert "| a | frugal | mean of 2 (spread) | 18.25 (0.50) |" in table[6]
     assert "| b | frugal | mean of 2 (spread) | 19.50 (1.00) |" in table[7]
     assert table[-1].startswith("| average | frugal | all | 18.88 |")
-    from frugalnerf_ns.sweep.grid import seed_args
+    from frugalnerf_ns.tools.sweep.grid import seed_args
 
     assert seed_args("frugalnerf-cpu", 3) == ["--machine.seed", "3", "--pipeline.datamanager.seed", "3"]
     assert seed_args("tensorf", 3) == ["--machine.seed", "3"] and seed_args("tensorf", None) == []

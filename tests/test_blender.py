@@ -12,12 +12,12 @@ import pytest
 import torch
 from PIL import Image
 
-from frugalnerf_ns.data import DataError
-from frugalnerf_ns.datamanager import FrugalDataManagerConfig
-from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig, detect_layout
-from frugalnerf_ns.dataparsers.blender import BlenderDataParserConfig, area_downscale
-from frugalnerf_ns.procedural_scene import SceneSpec, blender_camera_poses, render_view, write_blender_scene
-from frugalnerf_ns.splits import dietnerf_train_views, load_split_table
+from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.data.datamanager import FrugalDataManagerConfig
+from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_layout
+from frugalnerf_ns.data.dataparsers.blender import BlenderDataParserConfig, area_downscale
+from frugalnerf_ns.data.procedural_scene import SceneSpec, blender_camera_poses, render_view, write_blender_scene
+from frugalnerf_ns.data.splits import dietnerf_train_views, load_split_table
 
 SPEC = SceneSpec(width=64, height=64, focal=70.0)
 

@@ -2,8 +2,8 @@
 
 import torch
 
-from frugalnerf_ns.reprojection import project_to_camera
-from frugalnerf_ns.sparse_points import opencv_projection_matrices
+from frugalnerf_ns.geometry.reprojection import project_to_camera
+from frugalnerf_ns.data.sparse_points import opencv_projection_matrices
 from tests.helpers import load_script
 
 

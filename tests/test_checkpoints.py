@@ -6,7 +6,7 @@ import shutil
 import pytest
 import torch
 
-from frugalnerf_ns.checkpoints import (
+from frugalnerf_ns.run.checkpoints import (
     STAGING_NAME,
     CheckpointError,
     checkpoints_newest_first,

@@ -1,8 +1,8 @@
 import pytest
 import torch
 
-from frugalnerf_ns import color_mlp
-from frugalnerf_ns.color_mlp import ColorMLP, positional_encoding
+from frugalnerf_ns.field import color_mlp
+from frugalnerf_ns.field.color_mlp import ColorMLP, positional_encoding
 
 
 def test_positional_encoding_shape_and_values():
@@ -47,8 +47,8 @@ def test_auto_builds_the_torch_mlp_where_tinycudann_cannot_run():
 def test_asking_for_tinycudann_where_it_cannot_run_is_an_option_error():
     with pytest.raises(RuntimeError, match="tinycudann is not importable"):
         ColorMLP(27, implementation="tcnn")
-    from frugalnerf_ns.options import OptionError, validate_options
-    from frugalnerf_ns.presets import build_trainer_config
+    from frugalnerf_ns.run.options import OptionError, validate_options
+    from frugalnerf_ns.run.presets import build_trainer_config
 
     config = build_trainer_config("frugalnerf")
     config.pipeline.model.mlp_implementation = "tcnn"

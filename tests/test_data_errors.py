@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from frugalnerf_ns.data import DataError, check_scene_folder
+from frugalnerf_ns.data.input_checks import DataError, check_scene_folder
 from tests.training_helpers import ns_train_main, preset_config
 
 

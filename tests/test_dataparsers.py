@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 import torch
 
-from frugalnerf_ns.data import DataError
-from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig, detect_layout
-from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
-from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
-from frugalnerf_ns.dataparsers.nerfstudio_format import (
+from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_layout
+from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
+from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
+from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
     FewShotColmapDataParserConfig,
     FewShotNerfstudioDataParserConfig,
 )
-from frugalnerf_ns.dataparsers.realestate import RealEstateDataParserConfig
+from frugalnerf_ns.data.dataparsers.realestate import RealEstateDataParserConfig
 from tests import layout_fixtures as fx
 
 LAYOUTS = {
@@ -199,8 +199,8 @@ def test_nerfstudio_few_shot_conflicts_with_its_own_split_lists(tmp_path, proced
 
 
 def test_datamanager_puts_eval_masks_in_test_batches_only(tmp_path):
-    from frugalnerf_ns.datamanager import FrugalDataManagerConfig
-    from frugalnerf_ns.dataset import FrugalDataset
+    from frugalnerf_ns.data.datamanager import FrugalDataManagerConfig
+    from frugalnerf_ns.data.dataset import FrugalDataset
 
     fx.write_dtu(tmp_path / "dtu")
     config = FrugalDataManagerConfig(dataparser=DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)))
@@ -233,7 +233,7 @@ def test_eval_masks_are_read_for_nerfstudios_own_dataset_too(tmp_path):
     reads them with ``read_eval_mask`` so baselines are scored on the same pixels."""
     from nerfstudio.data.datasets.base_dataset import InputDataset
 
-    from frugalnerf_ns.dataset import FrugalDataset, read_eval_mask
+    from frugalnerf_ns.data.dataset import FrugalDataset, read_eval_mask
 
     fx.write_dtu(tmp_path / "dtu")
     outputs = DTUDataParserConfig(data=tmp_path / "dtu", train_views=(1, 3)).setup().get_dataparser_outputs("test")

@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 
-from frugalnerf_ns.procedural_scene import constant_color_psnr
+from frugalnerf_ns.data.procedural_scene import constant_color_psnr
 
 # The tiny preset must beat predicting the best constant colour by at least this much on the test views.
 PSNR_MARGIN_DB = 6.0

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from frugalnerf_ns.presets import build_trainer_config, load_preset_table
+from frugalnerf_ns.run.presets import build_trainer_config, load_preset_table
 from tests import layout_fixtures as fx
 from tests.training_helpers import preset_config, train
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from frugalnerf_ns.sweep import gate
-from frugalnerf_ns.sweep.store import ResultStore
+from frugalnerf_ns.tools.sweep import gate
+from frugalnerf_ns.tools.sweep.store import ResultStore
 
 ROOT = Path(__file__).resolve().parents[1]
 

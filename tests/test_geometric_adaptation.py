@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 
-from frugalnerf_ns.geometric_adaptation import (
+from frugalnerf_ns.model.geometric_adaptation import (
     LEFT_OUT_COLOR,
     SCALE_CHOICE_COLORS,
     ScaleFractionHistory,
@@ -14,9 +14,9 @@ from frugalnerf_ns.geometric_adaptation import (
     scale_choice_colors,
     scale_statistics,
 )
-from frugalnerf_ns.model import FrugalNeRFModelConfig
-from frugalnerf_ns.novel_views import nearest_other_view
-from frugalnerf_ns.reprojection import unproject_along_rays
+from frugalnerf_ns.model.frugalnerf import FrugalNeRFModelConfig
+from frugalnerf_ns.geometry.novel_views import nearest_other_view
+from frugalnerf_ns.geometry.reprojection import unproject_along_rays
 from tests.helpers import INTRINSICS, camera, manager_for, patch_pixels, pixel_rays, plane_depth, render_plane, texture
 
 
@@ -25,7 +25,7 @@ def model_and_batch(procedural_scene, tmp_path_factory):
     # The procedural scene triangulates only a few points, on its backdrop outside the scene box: let them
     # all count, so the batch has sparse rays.
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr("frugalnerf_ns.sparse_points.points_inside_box", lambda sparse, aabb: sparse)
+        patch.setattr("frugalnerf_ns.data.sparse_points.points_inside_box", lambda sparse, aabb: sparse)
         manager = manager_for(
             procedural_scene, train_num_rays_per_batch=225, num_novel_rays_per_batch=64, patch_size=5,
             min_sparse_points=1, sparse_cache_dir=tmp_path_factory.mktemp("sparse"),
@@ -63,7 +63,7 @@ def test_losses_include_geometric_adaptation_and_smoothness_with_gradients(model
 
 
 def test_sparse_depth_loss_reads_the_trailing_rays_at_every_scale(model_and_batch):
-    from frugalnerf_ns.losses import inverse_depth_loss
+    from frugalnerf_ns.model.losses import inverse_depth_loss
 
     model, bundle, batch = model_and_batch
     outputs = model(bundle)

@@ -43,7 +43,7 @@ def test_misplaced_names_tensors_on_the_wrong_device_type():
 
 
 def test_cpu_path_counter_sees_the_index_add_backward():
-    from frugalnerf_ns.tensorial import sample_plane
+    from frugalnerf_ns.field.tensorial import sample_plane
 
     plane = torch.randn(1, 3, 8, 8, requires_grad=True)
     x, y = torch.rand(10) * 2 - 1, torch.rand(10) * 2 - 1

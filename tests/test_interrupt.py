@@ -14,7 +14,7 @@ from typing import List, Tuple
 
 import pytest
 
-from frugalnerf_ns.checkpoints import checkpoints_newest_first, read_checkpoint
+from frugalnerf_ns.run.checkpoints import checkpoints_newest_first, read_checkpoint
 
 BIN = Path(sys.executable).parent
 #: nerfstudio's progress table prints a row every 10 steps: "<step> (<percent>%) ..."

@@ -1,15 +1,16 @@
-"""The package's layering: every module sits on a floor and imports only from its own floor or the floors
-below. A new module must be given a floor here; an import that runs upwards fails this test (lazy imports
-inside functions and typing-only imports count too: they are the same dependency, only later).
+"""The package's layering: every room (subpackage, or module of the package root) sits on a floor and imports
+only from its own floor or the floors below. A new room must be given a floor here; an import that runs upwards
+fails this test (lazy imports inside functions and typing-only imports count too: they are the same dependency,
+only later). The package's ``__init__`` says what each room holds.
 
-The floors, bottom to top (the rooms that issue 30's subpackages will make folders of):
-0. the package root: one-line errors, progress lines, keyed caches, the config tables;
-1. geometry and fields: NDC, ray marching, reprojection, camera conventions, poses and paths, what the cameras
-   say about the scene, the VM grids, the field and its colour MLP; the metrics and offline LPIPS;
-2. the model: config, rendering, objective, losses, geometric adaptation, batches, training schedule, scoring;
-3. data: datamanager, dataset, dataparsers, sparse points, monocular depth, splits, the procedural scene;
+The floors, bottom to top:
+0. the package root: one-line errors, progress lines, keyed caches, the config tables, old module names;
+1. geometry (rays, NDC, reprojection, poses and paths, scene analysis), field (grids, field, colour MLP),
+   scoring (metrics, offline LPIPS);
+2. model: config, rendering, objective, losses, geometric adaptation, batches, training schedule, scoring;
+3. data: datamanager, patches, training views, dataset, dataparsers, sparse points, monocular depth, splits, the procedural scene;
 4. tools: the offline evaluator, the demo, video rendering, ffmpeg, the sweep and the gate;
-5. running: trainer, pipeline, checkpoints, presets, options.
+5. run: trainer, pipeline, checkpoints, presets, options.
 """
 
 from __future__ import annotations
@@ -20,13 +21,12 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "frugalnerf_ns"
 
 FLOORS = {
-    0: "errors progress cache config_files",
-    1: "ndc raymarch reprojection camera_conventions novel_views video_path scene_analysis tensorial field color_mlp "
-       "metrics lpips_offline",
-    2: "model model_config rendering objective losses geometric_adaptation batch training_schedule image_scoring",
-    3: "datamanager dataset dataparsers sparse_points mono_depth splits procedural_scene data novel_cameras",
-    4: "offline_tools demo video ffmpeg_path sweep",
-    5: "trainer pipeline checkpoints checkpoint_compat presets options stepping",
+    0: "errors progress cache config_files legacy_names configs",
+    1: "geometry field scoring",
+    2: "model",
+    3: "data",
+    4: "tools",
+    5: "run",
 }
 FLOOR = {name: floor for floor, names in FLOORS.items() for name in names.split()}
 
@@ -75,10 +75,69 @@ def test_no_module_imports_from_a_floor_above_its_own():
 
 def test_an_upward_import_is_caught():
     # The check itself: a floor-1 module importing the model (floor 2) lazily, inside a function.
-    text = "import torch\n\n\ndef f():\n    from frugalnerf_ns.model import FrugalNeRFModel\n"
-    assert upward_imports([(PACKAGE / "ndc.py", text)]) == ["frugalnerf_ns/ndc.py:5 (floor 1) imports model (floor 2)"]
+    text = "import torch\n\n\ndef f():\n    from frugalnerf_ns.model.frugalnerf import FrugalNeRFModel\n"
+    assert upward_imports([(PACKAGE / "geometry" / "ndc.py", text)]) == [
+        "frugalnerf_ns/geometry/ndc.py:5 (floor 1) imports model (floor 2)"]
     # Sideways (same floor) and downwards are fine; "from frugalnerf_ns import x" names the module x.
-    text = "from frugalnerf_ns import losses, errors\nfrom frugalnerf_ns.rendering import StepRender\n"
-    assert upward_imports([(PACKAGE / "model.py", text)]) == []
-    assert upward_imports([(PACKAGE / "errors.py", "from frugalnerf_ns import metrics\n")]) == [
-        "frugalnerf_ns/errors.py:1 (floor 0) imports metrics (floor 1)"]
+    text = "from frugalnerf_ns import errors\nfrom frugalnerf_ns.field import tensorial\nfrom frugalnerf_ns.model.rendering import x\n"
+    assert upward_imports([(PACKAGE / "model" / "objective.py", text)]) == []
+    assert upward_imports([(PACKAGE / "errors.py", "from frugalnerf_ns import scoring\n")]) == [
+        "frugalnerf_ns/errors.py:1 (floor 0) imports scoring (floor 1)"]
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_graph(sources):
+    """{module: package modules it imports anywhere in its text} of (path, text) pairs; a module's own parent
+    packages are left out (importing a child runs them first anyway, and they import nothing of it)."""
+    texts = {module_name(path): text for path, text in sources}
+    graph = {}
+    for me, text in texts.items():
+        found = set()
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                found |= {node.module} | {f"{node.module}.{alias.name}" for alias in node.names}
+            elif isinstance(node, ast.Import):
+                found |= {alias.name for alias in node.names}
+        graph[me] = {m for m in found & set(texts) if m != me and not me.startswith(m + ".")}
+    return graph
+
+
+def circles(graph):
+    """Every module that can reach itself through imports, sorted."""
+    def reach(start):
+        seen, todo = set(), list(graph[start])
+        while todo:
+            module = todo.pop()
+            if module not in seen:
+                seen.add(module)
+                todo.extend(graph[module])
+        return seen
+
+    return sorted(module for module in graph if module in reach(module))
+
+
+def test_no_import_circles():
+    sources = [(p, p.read_text()) for p in sorted(PACKAGE.rglob("*.py"))]
+    assert circles(import_graph(sources)) == []
+
+
+def test_an_import_circle_is_caught():
+    # A lazy import back from the settings to the model: the circle the model's config once had.
+    sources = [
+        (PACKAGE / "model" / "config.py", "def f():\n    from frugalnerf_ns.model.frugalnerf import Model\n"),
+        (PACKAGE / "model" / "frugalnerf.py", "from frugalnerf_ns.model.config import Settings\n"),
+        (PACKAGE / "model" / "losses.py", "from frugalnerf_ns.model import config\n"),
+    ]
+    assert circles(import_graph(sources)) == ["frugalnerf_ns.model.config", "frugalnerf_ns.model.frugalnerf"]
+
+
+def test_every_room_says_what_it_holds_and_its_floor():
+    rooms = [p for p in sorted(PACKAGE.iterdir()) if (p / "__init__.py").is_file() and p.name in FLOOR]
+    assert {p.name for p in rooms} == {"geometry", "field", "scoring", "model", "data", "tools", "run"}
+    for room_dir in rooms:
+        doc = ast.get_docstring(ast.parse((room_dir / "__init__.py").read_text())) or ""
+        assert doc.startswith(f"Floor {FLOOR[room_dir.name]}, "), room_dir.name

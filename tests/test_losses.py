@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from frugalnerf_ns import losses
+from frugalnerf_ns.model import losses
 
 
 def test_multiscale_color_loss_is_the_weighted_sum_of_per_scale_mse():

@@ -1,6 +1,6 @@
 import torch
 
-from frugalnerf_ns.lpips_offline import OfflineLPIPS, find_alexnet_weights
+from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS, find_alexnet_weights
 from tests.lpips_fixture import fixed_image_pair
 
 # Reference LPIPS (lpips==0.1.4, net="alex", version 0.1) on fixed_image_pair(); how it was computed is in

@@ -7,7 +7,7 @@ import pytest
 import torch
 from torchmetrics.functional import structural_similarity_index_measure as ssim
 
-from frugalnerf_ns.metrics import masked_image_metrics, masked_psnr, white_background
+from frugalnerf_ns.scoring.metrics import masked_image_metrics, masked_psnr, white_background
 
 
 def fixture():
@@ -57,7 +57,7 @@ def test_ssim_is_that_of_the_white_composites_and_differs_from_black():
 
 
 def test_composite_is_the_over_operator_bit_for_bit():
-    from frugalnerf_ns.metrics import composite
+    from frugalnerf_ns.scoring.metrics import composite
 
     generator = torch.Generator().manual_seed(0)
     rgb, alpha = torch.rand(64, 3, generator=generator), torch.rand(64, 1, generator=generator)

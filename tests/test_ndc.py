@@ -1,6 +1,6 @@
 import torch
 
-from frugalnerf_ns.ndc import metric_distance_from_ndc, point_to_ndc, rays_to_ndc
+from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, point_to_ndc, rays_to_ndc
 
 FOCAL, W, H = 400.0, 504.0, 378.0
 

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from frugalnerf_ns.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
+from frugalnerf_ns.geometry.novel_views import nearest_other_view, spiral_focus_depth, spiral_poses
 
 
 def looking_down_minus_z(centers):

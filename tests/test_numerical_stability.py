@@ -13,13 +13,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from frugalnerf_ns.field import FrugalNeRFField
-from frugalnerf_ns.geometric_adaptation import pseudo_ground_truth_scale
-from frugalnerf_ns.novel_views import nearest_other_view, spiral_poses
-from frugalnerf_ns.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
-from frugalnerf_ns.reprojection import project_to_camera, unproject_along_rays, warp_to_views
-from frugalnerf_ns.scene_analysis import classify_camera_layout
-from frugalnerf_ns.sparse_points import TriangulationOptions, triangulate_tracks
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+from frugalnerf_ns.model.geometric_adaptation import pseudo_ground_truth_scale
+from frugalnerf_ns.geometry.novel_views import nearest_other_view, spiral_poses
+from frugalnerf_ns.geometry.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
+from frugalnerf_ns.geometry.reprojection import project_to_camera, unproject_along_rays, warp_to_views
+from frugalnerf_ns.geometry.scene_analysis import classify_camera_layout
+from frugalnerf_ns.data.sparse_points import TriangulationOptions, triangulate_tracks
 from tests.helpers import INTRINSICS, camera, pixel_rays, plane_depth, render_plane
 
 FAST = settings(max_examples=60, deadline=None)
@@ -235,7 +235,7 @@ def test_very_wide_baselines():
 
 # ---- model level -----------------------------------------------------------------------------------------
 def tiny_model(manager, **overrides):
-    from frugalnerf_ns.model import FrugalNeRFModelConfig
+    from frugalnerf_ns.model.frugalnerf import FrugalNeRFModelConfig
 
     fields = dict(
         initial_voxels=16**3, final_voxels=16**3, upsample_at=(), alpha_mask_at=(), density_components=(4, 2, 2),

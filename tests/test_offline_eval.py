@@ -3,7 +3,7 @@
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
-from frugalnerf_ns.offline_tools import render_test_rgb
+from frugalnerf_ns.tools.offline_tools import render_test_rgb
 from tests.helpers import tiny_model
 
 
@@ -50,7 +50,7 @@ def test_outside_training_only_the_full_scale_is_rendered_unless_asked():
 
 
 def test_mean_scores_average_each_metric_over_the_views_that_have_it():
-    from frugalnerf_ns.offline_tools import mean_scores
+    from frugalnerf_ns.tools.offline_tools import mean_scores
 
     views = [{"psnr": 10.0, "ssim": 0.5, "lpips": 0.2}, {"psnr": 20.0, "ssim": 0.7}]
     assert mean_scores(views) == {"psnr": 15.0, "ssim": 0.6, "lpips": 0.2}

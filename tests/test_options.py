@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from frugalnerf_ns.options import OptionError, option_problems, validate_options
-from frugalnerf_ns.presets import apply_override, build_trainer_config, load_preset_table
+from frugalnerf_ns.run.options import OptionError, option_problems, validate_options
+from frugalnerf_ns.run.presets import apply_override, build_trainer_config, load_preset_table
 from tests.training_helpers import ns_train_main, preset_config
 
 
@@ -77,7 +77,7 @@ def test_a_batch_larger_than_memory_is_one_line(procedural_scene, tmp_path):
 def test_out_of_memory_is_recognised_from_both_allocators():
     import torch
 
-    from frugalnerf_ns.trainer import is_out_of_memory, memory_shortfall
+    from frugalnerf_ns.run.trainer import is_out_of_memory, memory_shortfall
 
     cpu = RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: "
                        "you tried to allocate 320000000000 bytes. Error code 12 (Cannot allocate memory)")

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from frugalnerf_ns import presets
+from frugalnerf_ns.run import presets
 
 
 def test_entry_points_register_the_methods():
@@ -102,7 +102,7 @@ def test_list_values_become_tuples():
 @pytest.mark.parametrize("name", sorted(presets.load_preset_table()))
 def test_every_preset_schedule_fits_its_iterations(name):
     config = presets.build_trainer_config(name)
-    from frugalnerf_ns.training_schedule import steps_at
+    from frugalnerf_ns.model.training_schedule import steps_at
 
     total = config.max_num_iterations
     model = config.pipeline.model
@@ -113,7 +113,7 @@ def test_every_preset_schedule_fits_its_iterations(name):
 
 
 def test_paper_preset_schedule_is_the_papers_steps():
-    from frugalnerf_ns.training_schedule import steps_at
+    from frugalnerf_ns.model.training_schedule import steps_at
 
     model = presets.build_trainer_config("frugalnerf").pipeline.model
     assert steps_at(model.upsample_at, 5000) == [500, 1000, 1500, 2000, 2500, 3000]
@@ -144,7 +144,7 @@ def test_a_checkout_on_pythonpath_reads_its_own_configs(tmp_path):
     splits["checkout_marker"] = [7]
     (copy / "configs" / "splits.yaml").write_text(yaml.safe_dump(splits))
     probe = (
-        "import frugalnerf_ns, frugalnerf_ns.presets as p, frugalnerf_ns.splits as s;"
+        "import frugalnerf_ns, frugalnerf_ns.run.presets as p, frugalnerf_ns.data.splits as s;"
         "print(frugalnerf_ns.__file__);"
         "print(p.resolved_overrides('frugalnerf-cpu', p.load_preset_table())['pipeline.model.initial_voxels']);"
         "print(s.load_split_table().get('checkout_marker'))"

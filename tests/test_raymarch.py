@@ -2,7 +2,7 @@ import math
 
 import torch
 
-from frugalnerf_ns.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
+from frugalnerf_ns.geometry.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 

@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from frugalnerf_ns.dataparsers.auto import AutoDataParserConfig, detect_layout
-from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
-from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
+from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_layout
+from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
+from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FERN, SCAN65 = DATA / "llff" / "fern", DATA / "dtu" / "scan65"

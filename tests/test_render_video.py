@@ -7,10 +7,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from frugalnerf_ns.metrics import capped_psnr
+from frugalnerf_ns.scoring.metrics import capped_psnr
 from frugalnerf_ns.progress import FrameProgress, format_duration
-from frugalnerf_ns.video import scene_video_cameras
-from frugalnerf_ns.video_path import roll_degrees, world_up
+from frugalnerf_ns.tools.video import scene_video_cameras
+from frugalnerf_ns.geometry.video_path import roll_degrees, world_up
 
 
 def test_frame_progress_lines_read_well_in_a_log():
@@ -30,7 +30,7 @@ def test_ns_render_spiral_renders_the_scene_path_upright_at_full_scale(trained_r
     from nerfstudio.scripts import render  # imported as ns-render does: FrugalPipeline then teaches it
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
+    from frugalnerf_ns.tools.ffmpeg_path import provide_ffmpeg
 
     monkeypatch.setenv("PATH", os.environ.get("PATH", ""))  # restored after the test
     provide_ffmpeg()  # what the ns-render command gets from the plugin (ns-render checks for ffmpeg first)

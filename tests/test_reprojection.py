@@ -3,8 +3,8 @@
 import pytest
 import torch
 
-from frugalnerf_ns.losses import depth_smoothness_loss, geometric_adaptation_loss
-from frugalnerf_ns.reprojection import (
+from frugalnerf_ns.model.losses import depth_smoothness_loss, geometric_adaptation_loss
+from frugalnerf_ns.geometry.reprojection import (
     MAX_PIXEL_ERROR,
     Warp,
     patch_reprojection_error,

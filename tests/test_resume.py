@@ -3,7 +3,7 @@ same step (loss weights, learning rates, grid upsampling, alpha-mask box)."""
 
 import pytest
 
-from frugalnerf_ns import losses, objective
+from frugalnerf_ns.model import losses, objective
 from tests.training_helpers import preset_config, train
 
 SCHEDULE = dict(

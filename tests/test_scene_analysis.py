@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from frugalnerf_ns.scene_analysis import (
+from frugalnerf_ns.geometry.scene_analysis import (
     PAPER_GRID_SIDE_PER_PIXEL_ROOT,
     classify_camera_layout,
     fit_scene_box,
@@ -148,7 +148,7 @@ def test_fitted_box_joins_points_adds_margin_and_stays_in_the_box():
 
 
 def test_uninformative_views_are_named():
-    from frugalnerf_ns.scene_analysis import uninformative_view_notes
+    from frugalnerf_ns.geometry.scene_analysis import uninformative_view_notes
 
     c2w = torch.eye(4)[:3].expand(3, 3, 4).clone()
     c2w[1, 0, 3] = 0.5

@@ -2,7 +2,7 @@
 
 import torch
 
-from frugalnerf_ns.scene_analysis import grid_side_for_pixels
+from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
 from tests.helpers import manager_for, model_for
 
 
@@ -39,7 +39,7 @@ def test_auto_grid_sizes_the_final_grid_from_the_training_pixels(procedural_scen
 
 def test_the_start_up_summary_names_each_decision_and_its_override(procedural_scene, tmp_path):
     # What FrugalPipeline prints when ns-train sets up (the trained_run fixture's real ns-train prints it too).
-    from frugalnerf_ns.pipeline import scene_summary
+    from frugalnerf_ns.run.pipeline import scene_summary
 
     manager = manager_for(procedural_scene, scene_type="360", sparse_cache_dir=tmp_path)
     summary = scene_summary(manager, model_for(manager, auto_grid=True))

@@ -9,11 +9,11 @@ import torch
 from PIL import Image, ImageFilter
 
 from frugalnerf_ns.cache import cache_file_name
-from frugalnerf_ns.losses import inverse_depth_loss
-from frugalnerf_ns.procedural_scene import look_at
+from frugalnerf_ns.model.losses import inverse_depth_loss
+from frugalnerf_ns.data.procedural_scene import look_at
 from frugalnerf_ns.progress import Progress
-from frugalnerf_ns.reprojection import project_to_camera
-from frugalnerf_ns.sparse_points import (
+from frugalnerf_ns.geometry.reprojection import project_to_camera
+from frugalnerf_ns.data.sparse_points import (
     SparseDepth,
     TriangulationOptions,
     build_tracks,
@@ -198,7 +198,7 @@ def test_cache_key_follows_images_cameras_options_and_bounds():
 
 @pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
 def test_fern_two_views_give_plausible_points_inside_the_llff_bounds():
-    from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
+    from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 
     outputs = LLFFDataParserConfig(data=FERN, downscale_factor=8, train_views=(6, 13)).setup().get_dataparser_outputs("train")
     cams = outputs.cameras
@@ -214,7 +214,7 @@ def test_fern_two_views_give_plausible_points_inside_the_llff_bounds():
 
 
 def test_points_outside_the_scene_box_are_dropped_with_their_observations():
-    from frugalnerf_ns.sparse_points import points_inside_box
+    from frugalnerf_ns.data.sparse_points import points_inside_box
 
     points = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.5, -0.5, 0.9]], dtype=torch.float64)
     sparse = SparseDepth(
@@ -294,7 +294,7 @@ def test_feature_cap_keeps_the_largest_scale_features():
 
 
 def test_match_pairs_prints_progress_only_when_it_takes_long(monkeypatch, capsys):
-    import frugalnerf_ns.sparse_points as sparse_points
+    import frugalnerf_ns.data.sparse_points as sparse_points
 
     descriptors = [torch.nn.functional.normalize(torch.rand(20, 128), dim=-1) for _ in range(4)]
     pairs = neighbour_pairs(ring_of_cameras(4), neighbors=3)

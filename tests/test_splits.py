@@ -1,7 +1,7 @@
 import pytest
 
-from frugalnerf_ns.data import DataError
-from frugalnerf_ns.splits import every_nth, load_split_table, select_views, uniform_subset
+from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.data.splits import every_nth, load_split_table, select_views, uniform_subset
 
 
 def test_llff_protocol_with_known_views():

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from frugalnerf_ns.sweep import report
-from frugalnerf_ns.sweep.grid import GridError, cli_option, expand, load_grid
-from frugalnerf_ns.sweep.store import ResultStore
+from frugalnerf_ns.tools.sweep import report
+from frugalnerf_ns.tools.sweep.grid import GridError, cli_option, expand, load_grid
+from frugalnerf_ns.tools.sweep.store import ResultStore
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -116,8 +116,8 @@ def test_a_run_trains_and_scores_with_the_code_of_the_checkout_that_started_it(t
     installed copy first): ``execute`` runs its children from ``code_root`` and records that checkout's commit."""
     import subprocess
 
-    from frugalnerf_ns.sweep.grid import RunSpec
-    from frugalnerf_ns.sweep.runner import execute
+    from frugalnerf_ns.tools.sweep.grid import RunSpec
+    from frugalnerf_ns.tools.sweep.runner import execute
 
     checkout = tmp_path / "worktree"
     package = checkout / "frugalnerf_ns"
@@ -164,7 +164,7 @@ def local_ray():
 
 @pytest.mark.e2e
 def test_sweep_reports_a_failed_run_finishes_the_others_and_skips_them_next_time(local_ray, procedural_scene, tmp_path):
-    from frugalnerf_ns.sweep.cli import run_sweep, write_report
+    from frugalnerf_ns.tools.sweep.cli import run_sweep, write_report
 
     scenes = scenes_file(tmp_path, procedural_scene, own_split=True)
     # geo weight -1 is refused by the option check (one line, exit 1): a run that fails in its own process.
@@ -223,7 +223,7 @@ def _training_pid(marker: str, timeout: float = 120.0):
 
 @pytest.mark.slow
 def test_a_killed_worker_is_retried_and_its_training_dies_with_it(local_ray, procedural_scene, tmp_path):
-    from frugalnerf_ns.sweep.cli import run_sweep
+    from frugalnerf_ns.tools.sweep.cli import run_sweep
 
     scenes = scenes_file(tmp_path, procedural_scene, own_split=True)
     specs = expand(scenes, ["proc"], [3], ["frugalnerf-tiny"], {"full": []}, [None], max_iterations=150)
@@ -247,7 +247,7 @@ def test_a_killed_worker_is_retried_and_its_training_dies_with_it(local_ray, pro
 
 @pytest.mark.slow
 def test_a_two_by_two_grid_completes_with_a_table_per_option_and_seed(local_ray, procedural_scene, tmp_path):
-    from frugalnerf_ns.sweep.cli import main
+    from frugalnerf_ns.tools.sweep.cli import main
 
     scenes = scenes_file(tmp_path, procedural_scene, own_split=True)
     grid = grid_file(tmp_path, scenes, scenes=["proc"], views=[3], methods=["frugalnerf-tiny"], seeds=[1, 2],
@@ -265,7 +265,7 @@ def test_a_two_by_two_grid_completes_with_a_table_per_option_and_seed(local_ray,
 
 
 def test_command_refuses_a_bad_grid_or_missing_data_in_one_line(tmp_path, capsys):
-    from frugalnerf_ns.sweep.cli import main
+    from frugalnerf_ns.tools.sweep.cli import main
 
     assert main([str(tmp_path / "missing.yaml")]) == 1
     err = capsys.readouterr().err.strip().splitlines()

@@ -4,8 +4,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from frugalnerf_ns.field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
-from frugalnerf_ns.tensorial import TensorVMGrid, coords_for_stride, strided_length
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.field.tensorial import TensorVMGrid, coords_for_stride, strided_length
 
 AABB = torch.tensor([[-1.0, -1.5, -0.5], [1.0, 1.5, 0.5]])
 
@@ -190,7 +190,7 @@ def test_cpu_sampling_matches_grid_sample_values_and_gradients(shape):
     """The CPU backward (index_add over four corners) equals grid_sample's, border and strided views included."""
     import torch.nn.functional as F
 
-    from frugalnerf_ns.tensorial import sample_plane
+    from frugalnerf_ns.field.tensorial import sample_plane
 
     torch.manual_seed(0)
     full = torch.randn(shape[0], shape[1], shape[2] * 2, shape[3] * 2, dtype=torch.float64, requires_grad=True)

@@ -13,8 +13,8 @@ SCRIPT = Path(__file__).parents[1] / "scripts" / "tradeoff.py"
 
 
 def test_a_budget_is_only_the_iterations_and_the_schedule_follows():
-    from frugalnerf_ns.presets import build_trainer_config
-    from frugalnerf_ns.training_schedule import steps_at
+    from frugalnerf_ns.run.presets import build_trainer_config
+    from frugalnerf_ns.model.training_schedule import steps_at
 
     assert load_script("tradeoff").budget_args("frugalnerf-cpu", 500) == ["--max-num-iterations", "500"]  # preset: 1500
     model = build_trainer_config("frugalnerf-cpu").pipeline.model

@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from frugalnerf_ns.novel_views import spiral_focus_depth
-from frugalnerf_ns.procedural_scene import SceneSpec, camera_poses
-from frugalnerf_ns.scene_analysis import classify_camera_layout
-from frugalnerf_ns.video_path import orbit_poses, roll_degrees, video_poses, world_up
+from frugalnerf_ns.geometry.novel_views import spiral_focus_depth
+from frugalnerf_ns.data.procedural_scene import SceneSpec, camera_poses
+from frugalnerf_ns.geometry.scene_analysis import classify_camera_layout
+from frugalnerf_ns.geometry.video_path import orbit_poses, roll_degrees, video_poses, world_up
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FERN, FLOWER, SCAN65 = DATA / "llff" / "fern", DATA / "llff" / "flower", DATA / "dtu" / "scan65"
@@ -81,7 +81,7 @@ def test_full_orbit_for_surrounding_cameras():
 
 
 def forward_facing_check(scene: Path):
-    from frugalnerf_ns.dataparsers.llff import LLFFDataParserConfig
+    from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 
     outputs = LLFFDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
     cameras = outputs.cameras.camera_to_worlds
@@ -119,7 +119,7 @@ def test_flower_spiral_is_upright_around_the_training_cameras():
 
 @pytest.mark.skipif(not SCAN65.is_dir(), reason=f"real DTU scene not present at {SCAN65}")
 def test_dtu_orbit_stays_between_the_training_cameras():
-    from frugalnerf_ns.dataparsers.dtu import DTUDataParserConfig
+    from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
 
     cameras = DTUDataParserConfig(data=SCAN65).setup().get_dataparser_outputs("train").cameras.camera_to_worlds
     layout = classify_camera_layout(cameras, has_object_mask=True)
@@ -138,8 +138,8 @@ def test_dtu_orbit_stays_between_the_training_cameras():
 
 
 def test_the_one_look_at_frame_aims_at_the_target_without_roll():
-    from frugalnerf_ns.camera_conventions import look_at_poses
-    from frugalnerf_ns.procedural_scene import look_at
+    from frugalnerf_ns.geometry.camera_conventions import look_at_poses
+    from frugalnerf_ns.data.procedural_scene import look_at
 
     generator = torch.Generator().manual_seed(0)
     positions = torch.randn(50, 3, generator=generator, dtype=torch.float64) * 3

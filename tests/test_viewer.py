@@ -109,7 +109,7 @@ def test_viewer_serves_the_page_and_renders_a_frame_for_a_websocket_client(train
 def test_without_a_terminal_the_viewer_lets_training_end(monkeypatch):
     """The decision the end-to-end test below checks in a real ns-train: nerfstudio's viewer keeps a finished
     run alive until ctrl+c, which nobody can press without a terminal (CI, nohup, a job queue)."""
-    from frugalnerf_ns import presets
+    from frugalnerf_ns.run import presets
 
     class Stdin:
         def __init__(self, tty):
@@ -143,7 +143,7 @@ def test_viewer_outputs_offer_every_scale_and_the_pseudo_gt_scale_map(trained_ru
     import torch
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from frugalnerf_ns.geometric_adaptation import LEFT_OUT_COLOR, SCALE_CHOICE_COLORS
+    from frugalnerf_ns.model.geometric_adaptation import LEFT_OUT_COLOR, SCALE_CHOICE_COLORS
 
     _, run_dir = trained_run
     _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")  # what ns-viewer loads

@@ -95,13 +95,13 @@ def test_wheelhouse_installs_offline_and_trains(tmp_path):
         )
         assert train.returncode == 0, train.stderr[-3000:]
         config = next(runs.glob("*/frugalnerf-tiny/t/config.yml"))
-        scored = subprocess.run([str(bin_dir / "python"), "-m", "frugalnerf_ns.offline_tools", "eval", str(config)],
+        scored = subprocess.run([str(bin_dir / "python"), "-m", "frugalnerf_ns.tools.offline_tools", "eval", str(config)],
                                 capture_output=True, text=True, env=env, cwd=tmp_path)
         assert scored.returncode == 0, scored.stderr[-3000:]
         return json.loads([line for line in scored.stdout.splitlines() if line.startswith("RESULT ")][-1][7:])
 
     scene = tmp_path / "scene"
-    subprocess.run([str(python), "-c", f"from frugalnerf_ns.procedural_scene import write_procedural_scene as w; w({str(scene)!r})"],
+    subprocess.run([str(python), "-c", f"from frugalnerf_ns.data.procedural_scene import write_procedural_scene as w; w({str(scene)!r})"],
                    check=True, cwd=tmp_path)
     offline = train_and_score(venv / "bin", "offline")
     # The same seeded run in the development environment: the offline install is the same software.

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from frugalnerf_ns.presets import apply_override, build_trainer_config
+from frugalnerf_ns.run.presets import apply_override, build_trainer_config
 
 
 def preset_config(preset: str, data: Path, output_dir: Path, **overrides: Any):

@@ -1,0 +1,94 @@
+"""The default dataparser of every FrugalNeRF method: detect the layout of --data and parse it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Callable, List, Literal, Optional, Tuple, Type
+
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from frugalnerf_ns.data.input_checks import IMAGE_SUFFIXES, DataError
+from frugalnerf_ns.data.dataparsers.blender import SPLIT_FILES, BlenderDataParserConfig, is_blender_layout
+from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig
+from frugalnerf_ns.data.dataparsers.dtu import CAMERA_FILES, DTUDataParserConfig
+from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
+from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
+    FewShotColmapDataParserConfig,
+    FewShotNerfstudioDataParserConfig,
+)
+from frugalnerf_ns.data.dataparsers.realestate import REALESTATE_FILES, RealEstateDataParserConfig
+
+
+def _is_colmap(data: Path) -> bool:
+    return any((data / sub / "images.bin").is_file() or (data / sub / "images.txt").is_file()
+               for sub in ("sparse/0", "colmap/sparse/0"))
+
+
+# (name, what it looks for, test, parser config). Order matters: the first match wins.
+LAYOUTS: List[Tuple[str, str, Callable[[Path], bool], Type[DataParserConfig]]] = [
+    ("nerfstudio", "transforms.json", lambda d: d.suffix == ".json" or (d / "transforms.json").is_file(),
+     FewShotNerfstudioDataParserConfig),
+    ("Blender (NeRF-synthetic)", f"{SPLIT_FILES['train']} and {SPLIT_FILES['test']}", is_blender_layout,
+     BlenderDataParserConfig),
+    ("LLFF", "poses_bounds.npy", lambda d: (d / "poses_bounds.npy").is_file(), LLFFDataParserConfig),
+    ("DTU/IDR", f"{' or '.join(CAMERA_FILES)} with image/", lambda d: (d / "image").is_dir()
+     and any((d / f).is_file() for f in CAMERA_FILES), DTUDataParserConfig),
+    ("RealEstate-10K", f"{' and '.join(REALESTATE_FILES)} with rgb/", lambda d: (d / "rgb").is_dir()
+     and all((d / f).is_file() for f in REALESTATE_FILES), RealEstateDataParserConfig),
+    ("COLMAP", "sparse/0/images.bin (or colmap/sparse/0)", _is_colmap, FewShotColmapDataParserConfig),
+]
+
+
+@dataclass
+class AutoDataParserConfig(FewShotDataParserConfig):
+    """Detects the layout of --data (nerfstudio, Blender, LLFF, DTU/IDR, RealEstate-10K, COLMAP) and parses it."""
+
+    _target: Type = field(default_factory=lambda: AutoDataParser)
+    downscale_factor: Optional[int] = None
+    """Image downscale: LLFF reads images_<factor>/ (default 8); Blender halves 800x800 frames (default: to 400
+    wide); nerfstudio/COLMAP pass it on (default: auto)."""
+    center_method: Literal["poses", "focus", "none"] = "poses"
+    """nerfstudio/COLMAP data only: how nerfstudio centres the poses (focus: cameras looking at an object)."""
+
+
+def detect_layout(data: Path) -> Tuple[str, Type[DataParserConfig]]:
+    if not data.exists():
+        raise DataError(f"--data {data} does not exist")
+    for name, _, test, config_type in LAYOUTS:
+        if test(data):
+            return name, config_type
+    images = [p for p in data.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES] if data.is_dir() else []
+    looked_for = "; ".join(f"{name}: {what}" for name, what, _, _ in LAYOUTS)
+    found = f"{len(images)} images but no cameras" if images else "no images and no cameras"
+    raise DataError(
+        f"{data} has {found} in a layout FrugalNeRF reads (looked for {looked_for}); "
+        "for images alone, run ns-process-data (COLMAP) to estimate cameras"
+    )
+
+
+def layout_config(config: AutoDataParserConfig) -> Tuple[str, DataParserConfig]:
+    """The detected layout's parser config, carrying over the options it shares with the auto parser."""
+    name, config_type = detect_layout(Path(config.data))
+    target = config_type()
+    names = {f.name for f in fields(target)}
+    for f in fields(config):
+        if f.name in names and f.name != "_target":
+            value = getattr(config, f.name)
+            if value is not None:
+                setattr(target, f.name, value)
+    if isinstance(target, FewShotColmapDataParserConfig):
+        # nerfstudio looks in colmap/sparse/0 (ns-process-data); a plain COLMAP project has sparse/0.
+        target.colmap_path = next(p for p in (Path("colmap/sparse/0"), Path("sparse/0")) if (Path(config.data) / p).is_dir())
+    return name, target
+
+
+class AutoDataParser(DataParser):
+    config: AutoDataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        name, target = layout_config(self.config)
+        if split == "train":
+            CONSOLE.print(f"frugalnerf: {self.config.data} is {name} data ({type(target).__name__})")
+        return target.setup()._generate_dataparser_outputs(split, **kwargs)

@@ -1,0 +1,203 @@
+"""NeRF-synthetic (Blender) scenes: ``transforms_{train,val,test}.json`` with RGBA ``.png`` frames.
+
+The few-shot protocol is DietNeRF's, which FreeNeRF reuses for its Blender numbers (both in
+``DietNeRF-pytorch/dietnerf/`` of github.com/Jiawei-Yang/FreeNeRF: ``run_nerf.py``, ``load_blender.py`` and
+``configs/freenerf_8v/``):
+- training views: ``np.random.seed(0)`` then ``np.random.choice(train frames, max_train_views, replace=False)``;
+  for 8 views that is train frames 26, 86, 2, 55, 75, 93, 16, 73 (``configs/splits.yaml``);
+- test views: every 8th frame of ``transforms_test.json`` (``testskip`` 8): 25 views;
+- images at half resolution (``half_res``: 800x800 -> 400x400 by area averaging, straight alpha), composited
+  on white (``white_bkgd``) for the metrics; near / far 2 / 6.
+
+View indices are positions in the JSON's ``frames`` list (frame i is ``r_i``; filename order would put r_10
+before r_2). Training keeps the alpha channel: the model composites it on its own background, and the
+datamanager marks the scene as an object with a plain background.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple, Type
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image, UnidentifiedImageError
+
+from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images
+from frugalnerf_ns.data.splits import check_indices, dietnerf_train_views, load_split_table
+
+SPLIT_FILES = {"train": "transforms_train.json", "val": "transforms_val.json", "test": "transforms_test.json"}
+PROTOCOL_WIDTH = 400
+"""The few-shot protocol's image width (half of the 800x800 originals)."""
+
+
+@dataclass
+class BlenderDataParserConfig(FewShotDataParserConfig):
+    """NeRF-synthetic layout: transforms_train.json / transforms_test.json (camera_angle_x, frames with
+    file_path and a camera-to-world transform_matrix), RGBA .png frames. Indices count in each JSON's frame
+    order: --train-views in transforms_train.json, --test-views in transforms_test.json."""
+
+    _target: Type = field(default_factory=lambda: Blender)
+    downscale_factor: Optional[int] = None
+    """Image downscale (area average). Default: to the protocol's 400 pixels wide (2 for the 800x800
+    originals; 1 for images already that small)."""
+    test_every: Optional[int] = None
+    """Test on every n-th frame of transforms_test.json when --test-views is empty (default: the protocol's 8)."""
+    near: float = 2.0
+    """Nearest distance from a camera to the object (Blender convention)."""
+    far: float = 6.0
+    """Farthest distance from a camera to the object (Blender convention)."""
+    scene_radius: float = 1.5
+    """Half-size of the modelled box around the origin (TensoRF's and nerfstudio's box for these scenes)."""
+
+
+class Blender(DataParser):
+    config: BlenderDataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        data = Path(self.config.data)
+        table = load_split_table()["blender"]
+        source = "train" if split == "train" else "test"
+        meta, frames = read_transforms(data / SPLIT_FILES[source])
+        indices = self._indices(source, len(frames), table)
+        files = [frame_image(data, frames[i], data / SPLIT_FILES[source], i) for i in indices]
+        check_images(files)
+        with Image.open(files[0]) as img:
+            full_width, full_height = img.size
+        factor = self.config.downscale_factor or max(1, full_width // PROTOCOL_WIDTH)
+        if factor < 1:
+            raise DataError(f"--downscale-factor must be >= 1 (got {factor})")
+        files = [downscaled(path, factor, data) for path in files] if factor > 1 else files
+        width, height = full_width // factor, full_height // factor
+        focal = 0.5 * width / math.tan(0.5 * camera_angle(meta, data / SPLIT_FILES[source]))
+        c2w = torch.tensor(np.stack([pose_of(frames[i], data / SPLIT_FILES[source], i) for i in indices]))
+        cameras = Cameras(
+            camera_to_worlds=c2w[:, :3, :4].float(),
+            fx=focal,
+            fy=focal,
+            cx=width / 2.0,
+            cy=height / 2.0,
+            width=width,
+            height=height,
+            camera_type=CameraType.PERSPECTIVE,
+        )
+        r = self.config.scene_radius
+        if split == "train":
+            CONSOLE.print(
+                f"frugalnerf: Blender scene, {len(indices)} training views {indices} of {len(frames)} in "
+                f"{SPLIT_FILES['train']}, {width}x{height} (downscale {factor})"
+            )
+        return DataparserOutputs(
+            image_filenames=files,
+            cameras=cameras,
+            scene_box=SceneBox(aabb=torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)),
+            metadata={"near_far": (self.config.near, self.config.far)},
+        )
+
+    def _indices(self, source: str, num_frames: int, table: Dict) -> List[int]:
+        what = str(Path(self.config.data) / SPLIT_FILES[source])
+        if source == "test":
+            every = self.config.test_every or int(table["test_every"])
+            indices = list(self.config.test_views) or list(range(0, num_frames, every))
+            check_indices(indices, num_frames, "test", what)
+            return indices
+        if self.config.train_views:
+            indices = list(self.config.train_views)
+        else:
+            count = int(table["num_train_views"]) if self.config.num_train_views is None else self.config.num_train_views
+            if not 1 <= count <= num_frames:
+                raise DataError(f"{what}: --num-train-views {count} must be between 1 and its {num_frames} frames")
+            known = {int(k): v for k, v in table["train_views"].items()}
+            indices = list(known[count]) if count in known and num_frames == 100 else dietnerf_train_views(num_frames, count)
+        check_indices(indices, num_frames, "train", what)
+        return indices
+
+
+def read_transforms(path: Path) -> Tuple[Dict, List[Dict]]:
+    if not path.is_file():
+        raise DataError(f"{path} not found (Blender layout: transforms_train.json and transforms_test.json)")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DataError(f"{path} is not valid JSON ({err})") from None
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames:
+        raise DataError(f"{path} has no frames")
+    return meta, frames
+
+
+def camera_angle(meta: Dict, path: Path) -> float:
+    angle = meta.get("camera_angle_x")
+    if not isinstance(angle, (int, float)) or not 0 < angle < math.pi:
+        raise DataError(f"{path}: camera_angle_x must be a horizontal field of view in radians (got {angle!r})")
+    return float(angle)
+
+
+def pose_of(frame: Dict, path: Path, index: int) -> np.ndarray:
+    try:
+        pose = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        pose = None
+    if pose is None or pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise DataError(f"{path}: frame {index} needs a finite 4x4 transform_matrix")
+    return pose
+
+
+def frame_image(data: Path, frame: Dict, path: Path, index: int) -> Path:
+    """The frame's image: file_path relative to the scene, '.png' appended when it has no suffix."""
+    name = frame.get("file_path")
+    if not isinstance(name, str):
+        raise DataError(f"{path}: frame {index} has no file_path")
+    file = (data / name).resolve()
+    return file if file.suffix else file.with_name(file.name + ".png")
+
+
+def area_downscale(pixels: np.ndarray, factor: int) -> np.ndarray:
+    """Mean of every factor x factor block, channel by channel with straight (not premultiplied) alpha, as
+    the protocol's cv2.resize(INTER_AREA) does for an integer factor; rows and columns past the last whole
+    block are dropped."""
+    height, width = pixels.shape[0] // factor, pixels.shape[1] // factor
+    blocks = pixels[: height * factor, : width * factor].astype(np.float64)
+    blocks = blocks.reshape(height, factor, width, factor, -1).mean(axis=(1, 3))
+    return np.clip(np.round(blocks), 0, 255).astype(np.uint8)
+
+
+def downscaled(path: Path, factor: int, data: Path) -> Path:
+    """The image at 1/factor size, written once to frugalnerf_cache/ next to the data (a temporary folder
+    when the data is read-only) and reused while it is newer than the original."""
+    relative = path.relative_to(data.resolve()) if path.is_relative_to(data.resolve()) else Path(path.name)
+    for root in (data / "frugalnerf_cache", Path(tempfile.gettempdir()) / "frugalnerf_cache" / _folder_id(data)):
+        target = root / f"images_{factor}" / relative
+        if target.is_file() and target.stat().st_mtime >= path.stat().st_mtime:
+            return target
+        try:
+            with Image.open(path) as img:
+                pixels = np.asarray(img.convert("RGBA" if img.mode in ("RGBA", "LA", "P") else "RGB"))
+            target.parent.mkdir(parents=True, exist_ok=True)
+            tmp = target.with_name(target.stem + ".tmp.png")
+            Image.fromarray(area_downscale(pixels, factor)).save(tmp)
+            tmp.replace(target)
+            return target
+        except (UnidentifiedImageError, SyntaxError) as err:
+            raise DataError(f"image file {path} is unreadable or corrupt ({err})") from None
+        except OSError:
+            continue  # not writable here: try the next folder
+    raise DataError(f"could not write downscaled images of {path} (data folder and temporary folder not writable)")
+
+
+def _folder_id(data: Path) -> str:
+    return hashlib.sha1(str(data.resolve()).encode()).hexdigest()[:12]
+
+
+def is_blender_layout(data: Path) -> bool:
+    return all((data / SPLIT_FILES[s]).is_file() for s in ("train", "test"))

@@ -1,0 +1,134 @@
+"""LLFF forward-facing scenes (``poses_bounds.npy`` + ``images_N/``), modelled in NDC as the paper does."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Type
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras, CameraType
+from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
+from nerfstudio.data.scene_box import SceneBox
+from PIL import Image
+
+from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
+from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, list_images, split_indices
+from frugalnerf_ns.data.splits import every_nth, load_split_table
+
+# TensoRF's NDC scene box for LLFF (x and y slightly wider than [-1, 1] to cover the image corners).
+NDC_AABB = ((-1.5, -1.67, -1.0), (1.5, 1.67, 1.0))
+
+
+@dataclass
+class LLFFDataParserConfig(FewShotDataParserConfig):
+    """LLFF layout: poses_bounds.npy (N x 17: 3x5 pose+hwf, near, far) and images_N/ in filename order."""
+
+    _target: Type = field(default_factory=lambda: LLFF)
+    downscale_factor: int = 8
+    """Read images_<factor>/ (1: images/). The paper uses 4; 8 suits a CPU."""
+    ndc: bool = True
+    """Model the scene in normalised device coordinates (forward-facing scenes)."""
+    bd_factor: float = 0.75
+    """Scale the scene so the nearest bound lands at 1 / bd_factor (NeRF's LLFF loader)."""
+
+
+class LLFF(DataParser):
+    config: LLFFDataParserConfig
+
+    def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        data = Path(self.config.data)
+        poses, bounds = load_poses_bounds(data / "poses_bounds.npy")
+        folder = data / ("images" if self.config.downscale_factor == 1 else f"images_{self.config.downscale_factor}")
+        if not folder.is_dir():
+            available = sorted(p.name for p in data.glob("images*") if p.is_dir())
+            raise DataError(f"{folder} not found (available: {', '.join(available) or 'none'}; set --downscale-factor)")
+        images = list_images(folder)
+        if len(images) != poses.shape[0]:
+            raise DataError(
+                f"{data / 'poses_bounds.npy'} has {poses.shape[0]} poses but {folder} has {len(images)} images"
+            )
+        with Image.open(images[0]) as img:
+            width, height = img.size
+        full_height, full_width, full_focal = poses[0, :, 4]
+        focal = float(full_focal) * width / float(full_width)
+
+        c2w = llff_to_opengl(poses[:, :, :4])
+        scale = 1.0 / (bounds.min() * self.config.bd_factor)
+        c2w[:, :, 3] *= scale
+        bounds = bounds * scale
+        # The average camera over all frames defines the frame: it is a choice of coordinates (TensoRF and
+        # the paper do the same), no test pixel is used.
+        c2w = recenter(c2w)
+
+        table = load_split_table()["llff"]
+        scene_views = table["scenes"].get(self.config.resolved_scene_name())
+        views = self.config.split_views(len(images), every_nth(len(images), table["test_every"]), scene_views)
+        indices = split_indices(split, views)
+        check_images([images[i] for i in indices])
+
+        return forward_facing_outputs(
+            [images[i] for i in indices], c2w[indices], c2w[views.train], (focal, focal, width / 2.0, height / 2.0),
+            (width, height), (float(bounds.min()), float(bounds.max())), self.config.ndc, float(scale),
+        )
+
+
+def forward_facing_outputs(
+    images, c2w: np.ndarray, train_c2w: np.ndarray, intrinsics, size, near_far, ndc: bool, scale: float
+) -> DataparserOutputs:
+    """Outputs of a forward-facing scene (LLFF, RealEstate): NDC box and NDC parameters, or a metric box
+    around the training frusta. ``c2w`` are the split's cameras, already recentred and scaled."""
+    fx, fy, cx, cy = intrinsics
+    width, height = size
+    cameras = Cameras(
+        camera_to_worlds=torch.from_numpy(c2w).float(),
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
+        width=width,
+        height=height,
+        camera_type=CameraType.PERSPECTIVE,
+    )
+    metadata = {"near_far": near_far}
+    if ndc:
+        scene_box = SceneBox(aabb=torch.tensor(NDC_AABB))
+        # NDC assumes one pinhole with the principal point at the centre (as NeRF and TensoRF do).
+        metadata["ndc"] = {"focal": float(fx), "width": float(width), "height": float(height), "near": 1.0}
+    else:
+        scene_box = SceneBox(aabb=frustum_box(train_c2w, float(fx), width, height, near_far[1]))
+    return DataparserOutputs(
+        image_filenames=list(images), cameras=cameras, scene_box=scene_box, metadata=metadata, dataparser_scale=scale
+    )
+
+
+def load_poses_bounds(path: Path):
+    """(N, 3, 5) LLFF poses with hwf column and (N, 2) near/far bounds, checked."""
+    if not path.is_file():
+        raise DataError(f"{path} not found (LLFF layout needs poses_bounds.npy)")
+    try:
+        array = np.load(path)
+    except (ValueError, OSError, EOFError) as err:
+        raise DataError(f"{path} is unreadable or truncated ({err})") from None
+    if array.ndim != 2 or array.shape[1] != 17:
+        raise DataError(f"{path} has shape {array.shape}; LLFF expects N x 17 (3x5 pose and hwf, near, far)")
+    bad = np.where(~np.isfinite(array).all(axis=1))[0]
+    if bad.size:
+        raise DataError(f"{path}: row(s) {bad.tolist()} contain NaN or inf")
+    bounds = array[:, 15:]
+    if (bounds <= 0).any():
+        raise DataError(f"{path}: near/far bounds must be positive")
+    return array[:, :15].reshape(-1, 3, 5).astype(np.float64), bounds.astype(np.float64)
+
+
+def frustum_box(c2w: np.ndarray, focal: float, width: int, height: int, far: float) -> torch.Tensor:
+    """Axis-aligned box around the training cameras' frusta up to ``far`` (for metric, non-NDC modelling)."""
+    corners = np.array([[x, y, -1.0] for x in (-width / 2, width / 2) for y in (-height / 2, height / 2)])
+    corners[:, :2] /= focal
+    points = [c2w[:, :3, 3]]
+    for pose in c2w:
+        points.append((corners * far) @ pose[:3, :3].T + pose[:3, 3])
+    points = np.concatenate(points)
+    return torch.tensor(np.stack([points.min(axis=0), points.max(axis=0)]), dtype=torch.float32)

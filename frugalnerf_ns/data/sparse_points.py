@@ -1,0 +1,401 @@
+"""Sparse depth from the few training views (paper Sec. 3.5, L_sd after DS-NeRF).
+
+The paper runs COLMAP on the training views only (all views would leak the test views' geometry). We do the
+same inside the pipeline: SIFT features per training image with pycolmap (no COLMAP binary), COLMAP's
+matching rule (ratio test, distance limit, cross-check) in torch, then triangulation with the known, fixed
+cameras. Every pair is matched for a few views; with more, each view only with its nearest cameras, so
+start-up grows linearly with the views. The geometry (pairs, matches, tracks, DLT triangulation,
+reprojection and angle checks, the depth targets) is pure torch.
+
+Conventions are ``reprojection.py``'s: nerfstudio cameras (camera-to-world, OpenGL axes), pixel (u, v) from
+the top-left corner with pixel centres at i + 0.5 (COLMAP's keypoints use the same), depth = metric distance
+from the camera centre along the unit ray through the pixel.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int
+from torch import Tensor
+
+from frugalnerf_ns.cache import load_keyed_arrays, save_keyed_arrays
+from frugalnerf_ns.progress import Progress
+from frugalnerf_ns.geometry.reprojection import project_to_camera
+
+SIFT_DIMENSIONS = 128
+CACHE_VERSION = 2  # 2: matching in torch, nearest-camera pairs, feature cap enforced
+
+
+class SparseDepth(NamedTuple):
+    """Triangulated points and, per observation, the training pixel and the depth it should render."""
+
+    points: Float[Tensor, "points 3"]
+    """World positions of the points."""
+    view: Int[Tensor, " obs"]
+    """Training view of each observation."""
+    point: Int[Tensor, " obs"]
+    """Point of each observation."""
+    pixels: Float[Tensor, "obs 2"]
+    """(u, v) where the point projects in its view (exact, so the pixel's ray passes through the point)."""
+    depth: Float[Tensor, " obs"]
+    """Metric distance from the view's camera centre to the point."""
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points.shape[0])
+
+
+@dataclass
+class TriangulationOptions:
+    """Which triangulated points are kept."""
+
+    max_reprojection_error: float = 1.5
+    """Largest reprojection error in pixels, in every view of the track."""
+    min_track_length: int = 2
+    """Fewest views a point is seen in."""
+    min_triangulation_angle: float = 0.5
+    """Smallest angle, in degrees, between two rays of the track (smaller: depth is ill-conditioned)."""
+    max_features: int = 8192
+    """SIFT features per image (the largest-scale ones are kept)."""
+    match_neighbors: int = 8
+    """Each view is matched with this many nearest cameras (every pair when there are at most this + 1 views)."""
+
+    def key(self) -> Dict[str, float]:
+        return {k: float(v) for k, v in self.__dict__.items()}
+
+
+# ---- geometry (pure torch) ----------------------------------------------------------------------------------
+def opencv_projection_matrices(
+    camera_to_worlds: Float[Tensor, "views 3 4"], intrinsics: Float[Tensor, "views 4"]
+) -> Float[Tensor, "views 3 4"]:
+    """P = K F [R^T | -R^T t] with F = diag(1, -1, -1): the OpenCV-style projection of an OpenGL camera,
+    so u = (P X)_0 / (P X)_2 agrees with ``reprojection.project_to_camera``."""
+    rotation, translation = camera_to_worlds[:, :3, :3], camera_to_worlds[:, :3, 3]
+    world_to_camera = torch.cat([rotation.transpose(1, 2), -(rotation.transpose(1, 2) @ translation[..., None])], dim=2)
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=world_to_camera.dtype, device=world_to_camera.device))
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    zeros, ones = torch.zeros_like(fx), torch.ones_like(fx)
+    k = torch.stack([fx, zeros, cx, zeros, fy, cy, zeros, zeros, ones], dim=-1).reshape(-1, 3, 3)
+    return k @ flip @ world_to_camera
+
+
+def triangulate_dlt(
+    projections: Float[Tensor, "views 3 4"], view: Int[Tensor, "points k"], pixels: Float[Tensor, "points k 2"]
+) -> Float[Tensor, "points 3"]:
+    """Linear (DLT) triangulation of points seen in k views each: the null vector of the stacked rows
+    u P_2 - P_0 and v P_2 - P_1, in double precision (the system is badly scaled in pixels)."""
+    p = projections.double()[view]  # points k 3 4
+    uv = pixels.double()
+    rows = torch.cat([uv[..., :1] * p[..., 2, :] - p[..., 0, :], uv[..., 1:] * p[..., 2, :] - p[..., 1, :]], dim=1)
+    # Normalise rows so every equation weighs alike whatever the pixel magnitudes.
+    rows = rows / rows.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    _, _, vh = torch.linalg.svd(rows)
+    homogeneous = vh[:, -1]
+    w = homogeneous[:, 3:]
+    # A point at infinity (w ~ 0) cannot be placed; it is returned as NaN and dropped by the caller.
+    w = torch.where(w.abs() < 1e-12, torch.full_like(w, float("nan")), w)
+    return (homogeneous[:, :3] / w).to(pixels.dtype)
+
+
+def triangulation_angles(
+    points: Float[Tensor, "points 3"], centers: Float[Tensor, "points k 3"]
+) -> Float[Tensor, " points"]:
+    """Largest angle (degrees) between the rays from a point to the centres of the cameras seeing it."""
+    rays = torch.nn.functional.normalize(centers - points[:, None], dim=-1)
+    cos = torch.einsum("pid,pjd->pij", rays, rays).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.arccos(cos.amin(dim=(1, 2))))
+
+
+def build_tracks(matches: Dict[Tuple[int, int], np.ndarray], num_features: Sequence[int]) -> List[List[Tuple[int, int]]]:
+    """Join pairwise matches into tracks (connected components of (view, feature) nodes). A track that
+    holds two features of one view is contradictory and dropped; so are tracks seen in fewer than 2 views."""
+    offsets = np.concatenate([[0], np.cumsum(num_features)])
+    parent = list(range(int(offsets[-1])))
+
+    def find(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for (i, j), pairs in matches.items():
+        for a, b in np.asarray(pairs, dtype=np.int64).reshape(-1, 2):
+            ra, rb = find(int(offsets[i] + a)), find(int(offsets[j] + b))
+            if ra != rb:
+                parent[ra] = rb
+    groups: Dict[int, List[Tuple[int, int]]] = {}
+    matched = {int(offsets[i] + a) for (i, _), p in matches.items() for a in np.asarray(p).reshape(-1, 2)[:, 0]}
+    matched |= {int(offsets[j] + b) for (_, j), p in matches.items() for b in np.asarray(p).reshape(-1, 2)[:, 1]}
+    for node in sorted(matched):
+        view = int(np.searchsorted(offsets, node, side="right") - 1)
+        groups.setdefault(find(node), []).append((view, node - int(offsets[view])))
+    tracks = []
+    for track in groups.values():
+        views = [v for v, _ in track]
+        if len(track) >= 2 and len(set(views)) == len(views):
+            tracks.append(sorted(track))
+    return tracks
+
+
+def triangulate_tracks(
+    tracks: List[List[Tuple[int, int]]],
+    keypoints: Sequence[Float[Tensor, "features 2"]],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    options: TriangulationOptions,
+    depth_bounds: Optional[Tuple[float, float]] = None,
+) -> SparseDepth:
+    """Triangulate every track and keep the points in front of all their cameras, reprojecting within
+    ``max_reprojection_error`` pixels and seen under at least ``min_triangulation_angle`` degrees.
+
+    ``depth_bounds`` (near, far), when the scene has them (LLFF's come from COLMAP's own points), also drops
+    points whose depth along any observing camera's axis falls outside them: with two views a wrong match
+    anywhere on the epipolar line triangulates with zero reprojection error, and only the bounds catch it.
+    """
+    dtype = camera_to_worlds.dtype
+    projections = opencv_projection_matrices(camera_to_worlds, intrinsics)
+    centers = camera_to_worlds[:, :3, 3]
+    kept_points, views, point_ids, pixels, depths = [], [], [], [], []
+    by_length: Dict[int, List[List[Tuple[int, int]]]] = {}
+    for track in tracks:
+        if len(track) >= max(2, options.min_track_length):
+            by_length.setdefault(len(track), []).append(track)
+    count = 0
+    for length, group in sorted(by_length.items()):
+        view = torch.tensor([[v for v, _ in t] for t in group], dtype=torch.long)
+        observed = torch.stack([torch.stack([keypoints[v][f] for v, f in t]) for t in group]).to(dtype)
+        points = triangulate_dlt(projections, view, observed)
+        finite = torch.isfinite(points).all(dim=-1)
+        points = torch.where(finite[:, None], points, torch.zeros_like(points))
+        proj = project_to_camera(points[:, None].expand(-1, length, -1), camera_to_worlds[view], intrinsics[view])
+        error = (proj.pixels - observed).norm(dim=-1)
+        angle = triangulation_angles(points, centers[view])
+        keep = (
+            finite
+            & proj.in_front.all(dim=1)
+            & (error <= options.max_reprojection_error).all(dim=1)
+            & (angle >= options.min_triangulation_angle)
+        )
+        if depth_bounds is not None:
+            keep &= ((proj.depth >= depth_bounds[0]) & (proj.depth <= depth_bounds[1])).all(dim=1)
+        points, view, proj_pixels = points[keep], view[keep], proj.pixels[keep]
+        ids = torch.arange(count, count + points.shape[0])[:, None].expand(-1, length)
+        kept_points.append(points)
+        views.append(view.flatten())
+        point_ids.append(ids.flatten())
+        pixels.append(proj_pixels.reshape(-1, 2))
+        depths.append((points[:, None] - centers[view]).norm(dim=-1).flatten())
+        count += points.shape[0]
+    if not kept_points:
+        empty = torch.zeros(0, dtype=dtype)
+        return SparseDepth(empty.reshape(0, 3), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), empty.reshape(0, 2), empty)
+    return SparseDepth(torch.cat(kept_points), torch.cat(views), torch.cat(point_ids), torch.cat(pixels), torch.cat(depths))
+
+
+def points_inside_box(sparse: SparseDepth, aabb: Float[Tensor, "2 3"]) -> SparseDepth:
+    """Only the observations of points inside the scene box (the field cannot render depth outside it; in
+    object scenes a point outside is a wrong match on the background). Point indices are renumbered."""
+    lo, hi = aabb[0].to(sparse.points), aabb[1].to(sparse.points)
+    inside = ((sparse.points >= lo) & (sparse.points <= hi)).all(dim=-1)
+    new_index = torch.cumsum(inside.long(), 0) - 1
+    keep = inside[sparse.point]
+    return SparseDepth(
+        sparse.points[inside], sparse.view[keep], new_index[sparse.point[keep]], sparse.pixels[keep], sparse.depth[keep]
+    )
+
+
+# ---- features (pycolmap) and matches ----------------------------------------------------------------------------
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as err:  # pragma: no cover - pycolmap is a dependency
+        raise ImportError("sparse depth needs pycolmap (pip install pycolmap)") from err
+    return pycolmap
+
+
+def extract_sift(images: Sequence[np.ndarray], max_features: int, progress: bool = True) -> Tuple[List[Tensor], List[Tensor]]:
+    """SIFT keypoints ((u, v) per feature) and unit-length float descriptors of uint8 grey or RGB images, on
+    the CPU, at most ``max_features`` per image (the largest-scale ones: they repeat best across views;
+    pycolmap's own cap is not applied by its in-memory extractor)."""
+    pycolmap = _pycolmap()
+    options = pycolmap.FeatureExtractionOptions()
+    options.sift.max_num_features = int(max_features)
+    extractor = pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
+    keypoints, descriptors = [], []
+    ticker = Progress(len(images), "frugalnerf sparse points: SIFT", "view", "views/s", 5.0, quiet_seconds=3.0) if progress else None
+    for image in images:
+        grey = image if image.ndim == 2 else np.asarray(image[..., :3].astype(np.float32) @ [0.299, 0.587, 0.114])
+        kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(np.clip(grey, 0, 255).astype(np.uint8)))
+        uv = torch.tensor([[kp.x, kp.y] for kp in kps], dtype=torch.float64).reshape(-1, 2)
+        scale = torch.tensor([abs(kp.a11 * kp.a22 - kp.a12 * kp.a21) for kp in kps], dtype=torch.float64)
+        # 128-wide even without features (a blank image), so matching sees an empty (0, 128) set.
+        features = torch.from_numpy(np.asarray(desc.data, dtype=np.float32)).reshape(len(kps), SIFT_DIMENSIONS)
+        if len(kps) > max_features:
+            keep = torch.sort(torch.argsort(scale, descending=True)[:max_features]).values
+            uv, features = uv[keep], features[keep]
+        keypoints.append(uv)
+        descriptors.append(torch.nn.functional.normalize(features, dim=-1))
+        if ticker is not None:
+            ticker.tick()
+    return keypoints, descriptors
+
+
+def match_descriptors(
+    a: Float[Tensor, "n d"], b: Float[Tensor, "m d"], max_ratio: float = 0.8, max_distance: float = 0.7
+) -> Int[Tensor, "matches 2"]:
+    """COLMAP's SIFT matching rule on unit descriptors: the angle to the nearest descriptor at most
+    ``max_distance`` radians and below ``max_ratio`` times the angle to the second nearest, both ways, and
+    the two directions agree (cross-check). Returns (index in a, index in b) pairs."""
+    if len(a) < 2 or len(b) < 2:
+        return torch.zeros(0, 2, dtype=torch.long)
+
+    def one_way(similarity: Tensor) -> Tensor:
+        top = similarity.topk(2, dim=1)
+        angles = torch.arccos(top.values.clamp(-1.0, 1.0))
+        ok = (angles[:, 0] <= max_distance) & (angles[:, 0] < max_ratio * angles[:, 1])
+        return torch.where(ok, top.indices[:, 0], torch.full_like(top.indices[:, 0], -1))
+
+    similarity = a @ b.T
+    forward, backward = one_way(similarity), one_way(similarity.T)
+    rows = torch.nonzero(forward >= 0)[:, 0]
+    mutual = backward[forward[rows]] == rows
+    return torch.stack([rows[mutual], forward[rows][mutual]], dim=-1)
+
+
+def neighbour_pairs(camera_to_worlds: Float[Tensor, "views 3 4"], neighbors: int) -> List[Tuple[int, int]]:
+    """Pairs (i, j), i < j, joining every view with its ``neighbors`` nearest cameras (by centre distance):
+    at most views x neighbors pairs instead of views^2 / 2; every pair when views <= neighbors + 1."""
+    count = camera_to_worlds.shape[0]
+    if count <= neighbors + 1:
+        return [(i, j) for i in range(count) for j in range(i + 1, count)]
+    centers = camera_to_worlds[:, :3, 3].double()
+    distance = torch.cdist(centers, centers)
+    distance.fill_diagonal_(float("inf"))
+    nearest = distance.topk(neighbors, dim=1, largest=False).indices
+    return sorted({(min(i, int(j)), max(i, int(j))) for i in range(count) for j in nearest[i]})
+
+
+def match_pairs(
+    descriptors: Sequence[Tensor], pairs: Sequence[Tuple[int, int]], progress: bool = True
+) -> Dict[Tuple[int, int], np.ndarray]:
+    """Matches of each pair of views; no geometric verification here: the known cameras check every match
+    when its point is triangulated."""
+    ticker = Progress(len(pairs), "frugalnerf sparse points: matching", "pair", "pairs/s", 5.0, quiet_seconds=3.0) if progress else None
+    matches = {}
+    for i, j in pairs:
+        matches[(i, j)] = match_descriptors(descriptors[i], descriptors[j]).numpy()
+        if ticker is not None:
+            ticker.tick()
+    return matches
+
+
+def triangulate_training_views(
+    images: Sequence[np.ndarray],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    options: Optional[TriangulationOptions] = None,
+    depth_bounds: Optional[Tuple[float, float]] = None,
+    progress: bool = True,
+) -> SparseDepth:
+    """Sparse points of the training views: SIFT, matching of nearby views and triangulation with the fixed
+    cameras."""
+    options = options or TriangulationOptions()
+    keypoints, descriptors = extract_sift(images, options.max_features, progress)
+    matches = match_pairs(descriptors, neighbour_pairs(camera_to_worlds, options.match_neighbors), progress)
+    tracks = build_tracks(matches, [len(k) for k in keypoints])
+    return triangulate_tracks(tracks, keypoints, camera_to_worlds.double(), intrinsics.double(), options, depth_bounds)
+
+
+# ---- cache -------------------------------------------------------------------------------------------------
+def cache_key(
+    images: Sequence[np.ndarray],
+    camera_to_worlds: Tensor,
+    intrinsics: Tensor,
+    options: TriangulationOptions,
+    depth_bounds: Optional[Tuple[float, float]] = None,
+) -> str:
+    """Hash of everything the points depend on: pixels, cameras, options and depth bounds."""
+    digest = hashlib.sha256()
+    bounds = None if depth_bounds is None else [round(float(b), 6) for b in depth_bounds]
+    digest.update(json.dumps({"version": CACHE_VERSION, "bounds": bounds, **options.key()}, sort_keys=True).encode())
+    for image in images:
+        digest.update(str(image.shape).encode())
+        digest.update(np.ascontiguousarray(image).tobytes())
+    # Cameras are rounded so float noise between runs does not invalidate the cache.
+    digest.update(np.round(camera_to_worlds.double().cpu().numpy(), 6).tobytes())
+    digest.update(np.round(intrinsics.double().cpu().numpy(), 4).tobytes())
+    return digest.hexdigest()
+
+
+def save_sparse_depth(path: Path, sparse: SparseDepth, key: str) -> None:
+    save_keyed_arrays(
+        path, key, points=sparse.points.double().numpy(), view=sparse.view.numpy(), point=sparse.point.numpy(),
+        pixels=sparse.pixels.double().numpy(), depth=sparse.depth.double().numpy(),
+    )
+
+
+def load_sparse_depth(path: Path, key: str) -> Tuple[Optional[SparseDepth], str]:
+    """(points, "") from a cache file written for ``key``; (None, why) when it is missing, stale or corrupt."""
+    arrays, why = load_keyed_arrays(path, key)
+    if arrays is None:
+        return None, why
+    try:
+        sparse = SparseDepth(
+            torch.from_numpy(arrays["points"]), torch.from_numpy(arrays["view"]).long(),
+            torch.from_numpy(arrays["point"]).long(), torch.from_numpy(arrays["pixels"]), torch.from_numpy(arrays["depth"]),
+        )
+    except (KeyError, TypeError) as err:
+        return None, f"corrupt ({type(err).__name__}: {err})"
+    n = sparse.view.shape[0]
+    shapes_ok = sparse.points.ndim == 2 and sparse.points.shape[-1] == 3 and sparse.pixels.shape == (n, 2)
+    shapes_ok = shapes_ok and sparse.point.shape == (n,) and sparse.depth.shape == (n,)
+    if not shapes_ok or not all(torch.isfinite(t).all() for t in (sparse.points, sparse.pixels, sparse.depth)):
+        return None, "corrupt (inconsistent arrays)"
+    if n and (int(sparse.point.max()) >= sparse.points.shape[0] or bool((sparse.depth <= 0).any())):
+        return None, "corrupt (inconsistent arrays)"
+    return sparse, ""
+
+
+def training_sparse_depth(
+    images: Sequence[np.ndarray],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    options: TriangulationOptions,
+    bounds: Optional[Tuple[float, float]],
+    cache_path: Path,
+    box: Optional[Float[Tensor, "2 3"]],
+    min_points: int,
+    say: Callable[[str], None],
+) -> Optional[SparseDepth]:
+    """The sparse depth a training run uses: the cached points when the cache matches these views and options,
+    else triangulated (and cached; a cache that cannot be written is said and skipped). With a metric ``box``
+    (object scenes), points outside it are dropped as background mismatches. None, said, when fewer than
+    ``min_points`` remain: training goes on without L_sd."""
+    key = cache_key(images, camera_to_worlds, intrinsics, options, bounds)
+    sparse, why = load_sparse_depth(cache_path, key)
+    if sparse is None:
+        if why != "missing":
+            say(f"[bold yellow]frugalnerf: sparse-depth cache {cache_path} is {why}: rebuilding it.")
+        sparse = triangulate_training_views(images, camera_to_worlds, intrinsics, options, bounds)
+        try:
+            save_sparse_depth(cache_path, sparse, key)
+        except OSError as err:
+            say(f"frugalnerf: could not cache sparse points in {cache_path} ({err}); they stay in memory.")
+    if box is not None:
+        sparse = points_inside_box(sparse, box)
+    if sparse.num_points < min_points:
+        say(
+            f"[bold yellow]frugalnerf: triangulating the training views found {sparse.num_points} points "
+            f"(fewer than --pipeline.datamanager.min-sparse-points {min_points}): training goes on without the "
+            "sparse depth loss."
+        )
+        return None
+    say(f"frugalnerf: {sparse.num_points} sparse points from the training views supervise depth (L_sd).")
+    return sparse

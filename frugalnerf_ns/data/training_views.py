@@ -1,0 +1,94 @@
+"""What the datamanager derives once from the training views before the first step: the kind of scene, the
+scene box shrunk to what the views see, the sparse points triangulated between the views (L_sd) and the
+optional monocular depth (L_d). Each is a function of the views and the datamanager's settings, so it can be
+tested and reused without a datamanager."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
+from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
+
+from frugalnerf_ns.data.mono_depth import load_or_predict
+from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, training_sparse_depth
+from frugalnerf_ns.geometry.scene_analysis import (
+    CameraLayout,
+    SceneType,
+    classify_camera_layout,
+    fit_scene_box,
+    has_plain_background,
+    seen_region_box,
+)
+
+
+def classify_scene(
+    cameras: Cameras, rgb: Float[Tensor, "views height width 3"], has_alpha: bool, has_masks: bool, option: str
+) -> Tuple[CameraLayout, SceneType]:
+    """The training cameras' layout and the scene type: detected (``option`` "auto", an object mask or a plain
+    background counting as an object's) or the one the option names."""
+    layout = classify_camera_layout(
+        cameras.camera_to_worlds, has_object_mask=has_alpha or has_masks or has_plain_background(rgb)
+    )
+    return layout, (layout.scene_type if option == "auto" else option)
+
+
+def fitted_scene_box(
+    outputs: DataparserOutputs, box: Tensor, cameras: Cameras, rgb: Float[Tensor, "views height width 3"],
+    intrinsics: Float[Tensor, "views 4"], sparse: Optional[SparseDepth], min_views: int, margin: float,
+) -> Optional[Tensor]:
+    """``box`` shrunk to what at least ``min_views`` training views see joined with the sparse points and widened
+    by ``margin`` (``--pipeline.datamanager.fit-box-*``), or None when unchanged.
+
+    Only metric boxes: an NDC box already spans exactly the forward-facing frustum. A resumed or loaded run
+    takes its box from the checkpoint (the field's aabb buffer), whatever is fitted here."""
+    metadata = outputs.metadata or {}
+    if metadata.get("ndc") is not None:
+        return None
+    height, width = rgb.shape[1:3]
+    near_far = metadata.get("near_far")
+    seen = seen_region_box(
+        box, cameras.camera_to_worlds.cpu(), intrinsics.cpu(), (width, height),
+        None if near_far is None else (float(near_far[0]), float(near_far[1])), min_views,
+    )
+    points = None if sparse is None else sparse.points.cpu()
+    fitted = fit_scene_box(box, seen, points, margin)
+    return None if torch.equal(fitted, box) else fitted
+
+
+def training_view_points(
+    outputs: DataparserOutputs, cameras: Cameras, rgb: Float[Tensor, "views height width 3"],
+    intrinsics: Float[Tensor, "views 4"], options: TriangulationOptions, min_points: int, cache: Path, device,
+) -> Optional[SparseDepth]:
+    """Triangulated points of the training views on ``device``, from the cache when it matches; None when fewer
+    than ``min_points``."""
+    images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in rgb]
+    metadata = outputs.metadata or {}
+    near_far = metadata.get("near_far")
+    sparse = training_sparse_depth(
+        images, cameras.camera_to_worlds.double(), intrinsics.double().cpu(),
+        options,
+        None if near_far is None else (float(near_far[0]), float(near_far[1])), cache,
+        # A metric box (object scenes) drops background mismatches; NDC boxes are not in world units.
+        outputs.scene_box.aabb if metadata.get("ndc") is None else None,
+        min_points, CONSOLE.print,
+    )
+    if sparse is None:
+        return None
+    return SparseDepth(*(t.float().to(device) if t.is_floating_point() else t.to(device) for t in sparse))
+
+
+def training_view_mono_depth(
+    model_path: Path, is_disparity: bool, input_size: int, rgb: Float[Tensor, "views height width 3"], cache: Path,
+    device,
+) -> Tensor:
+    """The depth model's predictions for the training images on ``device``, cached next to the data."""
+    depth = load_or_predict(model_path, rgb, cache, is_disparity, input_size)
+    CONSOLE.print(f"frugalnerf: monocular depth of {len(depth)} training views from {model_path} (L_d).")
+    return depth.to(device)

@@ -1,0 +1,8 @@
+"""Floor 1, geometry: pure-torch rays and cameras, tested without nerfstudio's models.
+
+NDC warps (``ndc``), ray-box intersection and sample positions (``raymarch``), reprojection and depth
+warps between views (``reprojection``), camera-convention changes and the one look-at frame
+(``camera_conventions``), the poses of novel views and videos (``novel_views``, ``video_path``), and what the
+cameras say about a scene: forward-facing or surrounding, its box, the grid a pixel count asks for
+(``scene_analysis``). Imports only the package root (errors, progress) and other floor-1 rooms.
+"""

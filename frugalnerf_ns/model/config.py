@@ -1,0 +1,133 @@
+"""FrugalNeRF's model settings (``--pipeline.model.*``): one field per setting, each with its meaning.
+Defaults are the paper's LLFF 2-view settings; presets (``configs/presets.yaml``) override them.
+
+The settings know nothing of the model class: ``model/frugalnerf.py`` binds them to the model as
+``FrugalNeRFModelConfig`` (its ``_target``), so the modules that read settings (objective, schedule) import
+this one and no import runs in a circle."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Tuple
+
+from nerfstudio.models.base_model import ModelConfig
+
+from frugalnerf_ns.field.color_mlp import MLPImplementation
+from frugalnerf_ns.field.radiance_field import DensityActivation
+from frugalnerf_ns.geometry.reprojection import ErrorKind
+
+
+Background = Literal["random_white", "white", "black"]
+
+
+@dataclass
+class FrugalNeRFSettings(ModelConfig):
+    """FrugalNeRF model settings; defaults are the paper's LLFF 2-view settings."""
+
+    enable_collider: bool = False
+    """Rays are clipped to the scene box by the model itself, so nerfstudio's near/far collider is off."""
+    near_plane: float = 0.05
+    """Samples closer to the camera than this are skipped."""
+    initial_voxels: int = 64**3
+    """Voxel count of the grid at the start of training."""
+    final_voxels: int = 640**3
+    """Voxel count after the last upsampling (paper: 640^3 for LLFF, 300^3 for DTU); ignored with auto-grid."""
+    auto_grid: bool = False
+    """Size the final grid from the training pixels instead of final-voxels: side = 0.52 sqrt(pixels), the
+    paper's ratio (640^3 for two 1008x756 views; ~320^3 for two 504x378 views), clamped to 32..640."""
+    upsample_at: Tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+    """When the grid is upsampled (log-linear in voxel count), as fractions of the schedule (--schedule-steps,
+    by default the run's iterations: the paper's steps 500, 1000, ..., 3000 of 5000); the grid optimiser
+    restarts."""
+    carry_optimizer_state: bool = False
+    """At each upsampling (and shrink) resample the grid optimiser's Adam moments with the grid and continue
+    from them. Off (the reference code): a fresh Adam, whose first steps move every grid entry with any
+    gradient by about the learning rate (Adam's first step is lr * sign(gradient))."""
+    alpha_mask_at: Tuple[float, ...] = (0.2, 0.4)
+    """When the occupancy (alpha) mask is recomputed, as fractions of the schedule (paper: steps 1000 and 2000
+    of 5000); the box shrinks to it the first time."""
+    alpha_mask_threshold: float = 1e-4
+    """Alpha below which a (dilated) voxel counts as empty."""
+    density_components: Tuple[int, int, int] = (16, 4, 4)
+    """Components of the XY, XZ, YZ density planes and their lines."""
+    appearance_components: Tuple[int, int, int] = (48, 12, 12)
+    """Components of the XY, XZ, YZ appearance planes and their lines."""
+    appearance_dim: int = 27
+    """Output size of the appearance basis matrix shared by all scales."""
+    num_lower_scales: int = 2
+    """L: lower scales below the full one (2 = three scales)."""
+    downsample_ratio: int = 4
+    """Stride ratio between consecutive scales."""
+    step_ratio: float = 0.5
+    """Sample step at full resolution, in voxels."""
+    max_samples_per_ray: int = 1024
+    """Upper bound on samples per ray at the full scale."""
+    distance_scale: float = 25.0
+    """Sample distances are multiplied by this before alpha compositing (TensoRF)."""
+    density_activation: DensityActivation = "relu"
+    """relu for forward-facing scenes, softplus (shifted by -10) for object scenes."""
+    weight_threshold: float = 1e-4
+    """Colour is evaluated only at samples whose compositing weight exceeds this."""
+    mlp_hidden_dim: int = 128
+    """Width of the colour MLP."""
+    feature_pe: int = 0
+    """Positional-encoding frequencies of the appearance features fed to the MLP (0: none)."""
+    use_view_dirs: bool = False
+    """Feed the viewing direction to the colour MLP."""
+    view_pe: int = 0
+    """Positional-encoding frequencies of the viewing direction (0: none)."""
+    mlp_implementation: MLPImplementation = "auto"
+    """auto: tinycudann when importable with CUDA, torch otherwise."""
+    eval_all_scales: bool = False
+    """Outside training and the viewer (ns-eval, evaluation during training, ns-render), render every scale and
+    score the lower ones too (per-scale PSNR, depth and accumulation images). Off: only the full scale, the one
+    the metrics and videos use (1.3x faster on fern, docs/video.md). For a trained run, set ``eval_all_scales: true`` in its
+    config.yml."""
+    background: Background = "random_white"
+    """Training background: white or black at random per batch (reference code), or fixed."""
+    full_scale_color_weight: float = 1.0
+    """Eq. 1 weight of the full-resolution colour loss."""
+    lower_scale_color_weight: float = 10.0
+    """Eq. 1 weight of each lower scale's colour loss (LLFF 10, DTU and RealEstate 1)."""
+    appearance_tv_weight: float = 10.0
+    """TV on the appearance grid."""
+    density_tv_weight: float = 10.0
+    """Edge-aware TV on the density grid (weights exp(-|grad appearance|))."""
+    tv_plane_weight: float = 1e-2
+    """Weight of the planes inside a TV term."""
+    tv_line_weight: float = 1e-4
+    """Weight of the lines inside a TV term."""
+    density_l1_weight: float = 0.0
+    """L1 sparsity on the density components."""
+    distortion_weight: float = 5e-4
+    """Mip-NeRF 360 distortion loss."""
+    geo_weight: float = 0.01
+    """lambda_geo of the cross-scale geometric adaptation loss (Eq. 10-11); 0 turns it off."""
+    reprojection_error: ErrorKind = "rmse"
+    """How a patch's reprojection error (Eq. 2) aggregates per-channel squared colour differences over the
+    patch: rmse (reference code) or mse. Out-of-image / behind-camera pixels count as error 1."""
+    reprojection_threshold: float = 0.5
+    """Rays whose least reprojection error over the scales exceeds this are left out of L_geo (paper: 0.5;
+    in colour units for rmse, i.e. the warped patch is off by half the colour range)."""
+    depth_smoothness_weight: float = 5e-3
+    """Depth smoothness on novel-view 2x2 patches (LLFF 5e-3, DTU 50, RealEstate 0); lower scales / 16, 256."""
+    occlusion_weight: float = 0.0
+    """Occlusion regulariser (FreeNeRF): density of the first samples of every ray, for object scenes on a
+    black or white background; off (0) for forward-facing scenes and, in the reference, at 2 views."""
+    occlusion_near_samples: int = 10
+    """Samples nearest the camera (full scale; lower scales use proportionally fewer) the occlusion loss
+    always penalises."""
+    occlusion_background_samples: int = 15
+    """Samples nearest the camera in which black or white samples are also penalised (background prior)."""
+    occlusion_background_prior: bool = True
+    """Penalise near samples whose colour is black or white (the background of DTU-like object scenes)."""
+    sparse_depth_weight: float = 0.5
+    """lambda_sd: MSE between inverse rendered and inverse sparse-point depth (metric), at every scale
+    (LLFF / DTU 0.5, RealEstate 0.05); points come from the datamanager (--pipeline.datamanager.sparse-depth)."""
+    mono_depth_weight: float = 0.01
+    """lambda_d of the optional monocular depth loss (1 - Pearson correlation of rendered and predicted depth,
+    every scale); active only with --pipeline.datamanager.mono-depth-model."""
+    loss_weight_decay: float = 0.025
+    """Over the run the lower-scale colour, TV, occlusion, depth-smoothness, sparse and monocular depth weights
+    fall by this factor and the distortion weight grows by it (reference schedule, the learning rate's decay:
+    LLFF 0.025, DTU 0.05); 1 keeps every weight constant."""

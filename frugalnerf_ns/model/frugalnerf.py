@@ -1,0 +1,291 @@
+"""FrugalNeRF model for nerfstudio: the config, the multi-scale field, and nerfstudio's model interface.
+
+One training step reads in this order: ``get_outputs`` renders every scale of the batch's rays
+(``rendering.py``) and keeps them in a ``StepRender``; ``get_metrics_dict`` and ``get_loss_dict`` take the
+``TrainBatch`` from ``FrugalDataManager`` (``batch.py``) and assemble the objective (``objective.py``: Eq.
+1 and 10-11, each term one weighted line; the loss functions are in ``losses.py``). Outside training the
+model renders rgb / depth / accumulation per scale (plus the viewer's pseudo-GT scale map) and scores test
+images (``image_scoring.py``). What happens at given steps (upsampling, alpha mask, loss-weight decay) is the
+training schedule (``training_schedule.py``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+from typing import Dict, Iterator, List, Optional, Tuple, Type, Union
+
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
+from nerfstudio.models.base_model import Model
+from nerfstudio.viewer.viewer_elements import ViewerCheckbox
+from torch import Tensor
+from torch.nn import Parameter
+from torch.profiler import record_function
+
+from frugalnerf_ns.model import objective
+from frugalnerf_ns.model.batch import EvalBatch, TrainBatch
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.model.geometric_adaptation import (
+    ScaleFractionHistory,
+    pseudo_ground_truth_scale,
+    scale_choice_colors,
+    scale_statistics,
+)
+from frugalnerf_ns.model.image_scoring import ImageScorer
+from frugalnerf_ns.scoring.metrics import capped_psnr
+from frugalnerf_ns.model.config import FrugalNeRFSettings
+from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
+from frugalnerf_ns.model.objective import ReferenceViews
+from frugalnerf_ns.geometry.raymarch import intersect_aabb
+from frugalnerf_ns.model.rendering import StepRender, render_scale, scale_suffix
+from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
+from frugalnerf_ns.model.training_schedule import training_callbacks
+
+
+@dataclass
+class FrugalNeRFModelConfig(FrugalNeRFSettings):
+    """FrugalNeRF's settings (``model/config.py``) bound to the model they build."""
+
+    _target: Type = field(default_factory=lambda: FrugalNeRFModel)
+
+
+class FrugalNeRFModel(Model):
+    """Weight-sharing multi-scale tensorial radiance field."""
+
+    config: FrugalNeRFModelConfig
+
+    def populate_modules(self) -> None:
+        super().populate_modules()
+        aabb = self.scene_box.aabb.float()
+        resolution = resolution_for_voxels(self.config.initial_voxels, (aabb[1] - aabb[0]).tolist())
+        self.field = FrugalNeRFField(
+            aabb=aabb,
+            resolution=resolution,
+            density_components=self.config.density_components,
+            appearance_components=self.config.appearance_components,
+            appearance_dim=self.config.appearance_dim,
+            downsample_ratio=self.config.downsample_ratio,
+            num_lower_scales=self.config.num_lower_scales,
+            density_activation=self.config.density_activation,
+            mlp_hidden_dim=self.config.mlp_hidden_dim,
+            feature_pe=self.config.feature_pe,
+            use_view_dirs=self.config.use_view_dirs,
+            view_pe=self.config.view_pe,
+            mlp_implementation=self.config.mlp_implementation,
+        )
+        # What the datamanager found out about the scene (FrugalDataManager; absent with other datamanagers).
+        scene = (self.kwargs.get("metadata") or {}).get("frugalnerf_scene") or {}
+        self.scene_type: Optional[str] = scene.get("scene_type")
+        self.final_voxels = self.config.final_voxels
+        if self.config.auto_grid and "num_train_pixels" in scene:
+            self.final_voxels = max(self.config.initial_voxels, grid_side_for_pixels(scene["num_train_pixels"]) ** 3)
+        self.upsample_voxels = log_linear_voxel_counts(
+            self.config.initial_voxels, self.final_voxels, len(self.config.upsample_at)
+        )
+        # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
+        self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
+        # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
+        # the module tree and out of every checkpoint.
+        self.scorer = ImageScorer()
+        self._register_load_state_dict_pre_hook(drop_metric_network_keys)
+        # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
+        self.num_rendered_scales: Optional[int] = None
+        # The geometric adaptation's scale fractions of every training step (recorded by get_metrics_dict),
+        # at the step under way: set before each step by the training schedule, as splatfacto keeps its own.
+        self.scale_history = ScaleFractionHistory()
+        self.step = 0
+        # Progress lines of a video render (frames, fps, ETA), set by the ns-render hook in video.py.
+        self.frame_progress = None
+        # Factor of the decaying loss weights (losses.loss_weight_schedule), set before every training step.
+        self.loss_schedule_factor = 1.0
+        # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
+        # scale map outside it (set_reference_views).
+        self.reference_views: Optional[ReferenceViews] = None
+        # Viewer panel ("Custom Elements"): the lower scales cost most of a frame's render time on a CPU.
+        self.viewer_lower_scales = ViewerCheckbox(
+            "Render lower scales", True, hint="Render every scale (rgb/depth per scale, pseudo-GT scale map); "
+            "off renders only the full scale, faster on a CPU."
+        )
+        # None: the map is rendered only for a viewer (checkbox on); True/False force it (tests, benchmarks).
+        # ns-eval and evaluation during training never show it, so they do not pay for it.
+        self.render_scale_map: Optional[bool] = None
+        self.viewer_scale_map = ViewerCheckbox(
+            "Pseudo-GT scale map", True, hint="Output pseudo_gt_scale: which scale's depth the geometric "
+            "adaptation would take (red full, blue 1, green 2, grey left out)."
+        )
+
+    def set_reference_views(
+        self,
+        images: Float[Tensor, "views height width 3"],
+        camera_to_worlds: Float[Tensor, "views 3 4"],
+        intrinsics: Float[Tensor, "views 4"],
+    ) -> None:
+        """Training views that geometric adaptation and the pseudo-GT scale map warp into (FrugalPipeline
+        calls this at set-up; without them L_geo is off). Kept out of the state dict: they come from the data,
+        not from training."""
+        self.reference_views = ReferenceViews(images, camera_to_worlds, intrinsics)
+
+    @property
+    def occlusion_active(self) -> bool:
+        """The occlusion loss is for object scenes (floaters in front of a masked or plain-background
+        object); other scene types skip it even with a weight (``--pipeline.datamanager.scene-type``
+        overrides the detection)."""
+        return self.config.occlusion_weight > 0 and self.scene_type in (None, "object")
+
+    def _scale_map_wanted(self) -> bool:
+        if self.render_scale_map is not None:
+            return self.render_scale_map
+        return self.viewer_scale_map.gui_handle is not None and bool(self.viewer_scale_map.value)
+
+    @contextlib.contextmanager
+    def full_scale_only(self) -> Iterator[None]:
+        """Within the block, inference renders only the full scale (the only one test metrics read)."""
+        previous, self.num_rendered_scales = self.num_rendered_scales, 1
+        try:
+            yield
+        finally:
+            self.num_rendered_scales = previous
+
+    # ---- optimisation -----------------------------------------------------------------------------------
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
+
+    def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        return training_callbacks(self, training_callback_attributes)
+
+    # ---- rendering --------------------------------------------------------------------------------------
+    def _background(self, device: torch.device) -> Float[Tensor, "3"]:
+        if self.config.background == "black" or (
+            self.config.background == "random_white" and self.training and torch.rand(()) < 0.5
+        ):
+            return torch.zeros(3, device=device)
+        return torch.ones(3, device=device)
+
+    def _eval_background(self) -> Float[Tensor, "3"]:
+        """The background renders use outside training (white unless the preset trains on black)."""
+        value = 0.0 if self.config.background == "black" else 1.0
+        return torch.full((3,), value, device=self.device)
+
+    def get_outputs(self, ray_bundle: RayBundle) -> Dict[str, Union[Tensor, StepRender]]:
+        shape = ray_bundle.origins.shape[:-1]
+        world_origins = ray_bundle.origins.reshape(-1, 3)
+        world_directions = ray_bundle.directions.reshape(-1, 3)
+        origins, directions, ndc_rays = world_origins, world_directions, None
+        if self.ndc is not None:
+            ndc_rays = rays_to_ndc(origins, directions, **self.ndc)
+            origins, directions = ndc_rays.origins, ndc_rays.directions
+        background = self._background(origins.device)
+        # All scales march the same box: intersect once.
+        segments = intersect_aabb(origins, directions, self.field.aabb, self.config.near_plane)
+        cfg = self.config
+        renders, metric_depths = [], []
+        outputs: Dict[str, Union[Tensor, StepRender]] = {}
+        for scale in range(self._scales_to_render()):
+            with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (scripts/profile_step.py)
+                render = render_scale(
+                    self.field, origins, directions, scale, background, segments, cfg.step_ratio, cfg.distance_scale,
+                    cfg.max_samples_per_ray, cfg.weight_threshold, jitter=self.training,
+                )
+            depth = render.depth[:, 0]
+            if ndc_rays is not None:
+                # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
+                depth = metric_distance_from_ndc(depth, ndc_rays, self.ndc["near"])
+            renders.append(render)
+            metric_depths.append(depth)
+            suffix = scale_suffix(scale)
+            outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)
+            outputs[f"depth{suffix}"] = depth.reshape(*shape, 1)
+            outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
+        if self.training:
+            # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
+            outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths)
+        elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
+            chosen = pseudo_ground_truth_scale(
+                world_origins, world_directions, torch.stack(metric_depths), outputs["rgb"].reshape(-1, 3),
+                *self.reference_views, cfg.reprojection_threshold, cfg.reprojection_error,
+            )
+            outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
+        return outputs
+
+    def get_outputs_for_camera(self, camera, obb_box=None) -> Dict[str, Tensor]:
+        outputs = super().get_outputs_for_camera(camera, obb_box=obb_box)
+        if self.frame_progress is not None:  # a video being rendered (video.teach_ns_render_spiral)
+            self.frame_progress.tick()
+        return outputs
+
+    def _scales_to_render(self) -> int:
+        """Training renders every scale (every loss needs them). Outside it: what a tool asked for
+        (``num_rendered_scales``); in the viewer, its "Render lower scales" checkbox; the pseudo-GT scale map
+        needs every scale; anything else (ns-eval, ns-render, evaluation during training) renders the full
+        scale only unless ``eval_all_scales``: the metrics and videos read nothing else."""
+        if self.training:
+            return self.field.num_scales
+        if self.num_rendered_scales is not None:
+            return min(self.field.num_scales, self.num_rendered_scales)
+        if self.viewer_lower_scales.gui_handle is not None:
+            return self.field.num_scales if self.viewer_lower_scales.value else 1
+        if self.render_scale_map or self.config.eval_all_scales:
+            return self.field.num_scales
+        return 1
+
+    # ---- losses and metrics -----------------------------------------------------------------------------
+    def get_metrics_dict(self, outputs, batch: Union[TrainBatch, EvalBatch]) -> Dict[str, Tensor]:
+        metrics: Dict[str, Tensor] = {}
+        if isinstance(batch, TrainBatch):
+            step: StepRender = outputs["step"]
+            target = objective.target_rgb(batch.image.to(self.device), step.background)
+            for scale, render in enumerate(step.scales):
+                metrics[f"psnr{scale_suffix(scale)}"] = capped_psnr(render.rgb[batch.train].detach(), target)
+            adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views)
+            if adaptation is not None:
+                stats = scale_statistics(adaptation.chosen_scale, self.field.num_scales)
+                self.scale_history.record(self.step, stats)
+                metrics.update({name: torch.tensor(value) for name, value in stats.items()})
+            return metrics
+        target = objective.target_rgb(_check_batch(batch).image.to(self.device), self._eval_background())
+        for scale in range(self.field.num_scales):
+            if f"rgb{scale_suffix(scale)}" in outputs:
+                metrics[f"psnr{scale_suffix(scale)}"] = capped_psnr(outputs[f"rgb{scale_suffix(scale)}"].detach(), target)
+        return metrics
+
+    def get_loss_dict(self, outputs, batch: Union[TrainBatch, EvalBatch], metrics_dict=None) -> Dict[str, Tensor]:
+        decay = self.loss_schedule_factor
+        if isinstance(batch, TrainBatch):
+            return objective.training_losses(
+                self.config, self.field, outputs["step"], batch, self.reference_views, decay, self.occlusion_active
+            )
+        return objective.eval_losses(self.config, self.field, outputs, _check_batch(batch), self._eval_background(), decay)
+
+    def get_rgba_image(self, outputs: Dict[str, Tensor], output_name: str = "rgb") -> Tensor:
+        """RGB with the accumulation as alpha (ns-export and ns-render's rgba; nerfstudio's default reads a
+        renderer module this model does not have)."""
+        return torch.cat([outputs[output_name], outputs[output_name.replace("rgb", "accumulation")]], dim=-1)
+
+    def lpips(self, images_0: Tensor, images_1: Tensor) -> Optional[Tensor]:
+        """LPIPS distance (``ImageScorer.lpips``); None when LPIPS is unavailable."""
+        return self.scorer.lpips(images_0, images_1)
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, Tensor], batch: Dict[str, Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        image = objective.target_rgb(batch["image"].to(self.device), self._eval_background())
+        mask = batch.get("eval_mask")
+        return self.scorer.metrics_and_images(outputs, image, None if mask is None else mask.to(self.device),
+                                              self.field.num_scales)
+
+
+def drop_metric_network_keys(state_dict, prefix, *args) -> None:
+    """Checkpoints written before the LPIPS network left the module tree hold its weights under
+    ``lpips.``: drop them so those checkpoints still load strictly."""
+    for key in [k for k in state_dict if k.startswith(f"{prefix}lpips.")]:
+        del state_dict[key]
+
+
+def _check_batch(batch) -> EvalBatch:
+    """Only FrugalDataManager's typed batches are understood (nerfstudio's dict batches carry no warp context)."""
+    if not isinstance(batch, EvalBatch):
+        raise TypeError(f"FrugalNeRFModel needs a TrainBatch or EvalBatch from FrugalDataManager, got {type(batch).__name__}")
+    return batch

@@ -1,0 +1,201 @@
+"""FrugalNeRF's training objective (paper Eq. 11), assembled in one place: each term is one named, weighted
+line in ``training_losses``; the loss functions themselves are in ``losses.py``.
+
+Weights follow the reference code: lower scales' colour terms weigh ``lower_scale_color_weight``; grid and
+sample regularisers at scale l are divided by ratio^(2l) (16 and 256 for s = 4); the lower-scale colour,
+TV, occlusion, smoothness, sparse and mono depth weights fall with the loss-weight schedule (``decay``, 1 at
+the start) while the distortion weight grows with it.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Dict, List, NamedTuple, Optional
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+from torch.profiler import record_function
+
+from frugalnerf_ns.model import losses
+from frugalnerf_ns.model.batch import EvalBatch, TrainBatch
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+from frugalnerf_ns.model.geometric_adaptation import AdaptationResult, cross_scale_geometric_adaptation
+from frugalnerf_ns.scoring.metrics import composite
+from frugalnerf_ns.model.rendering import StepRender
+
+if TYPE_CHECKING:
+    from frugalnerf_ns.model.config import FrugalNeRFSettings
+
+
+class ReferenceViews(NamedTuple):
+    """The training views warps compare with, held once by the model (composited on white)."""
+
+    images: Float[Tensor, "views height width 3"]
+    camera_to_worlds: Float[Tensor, "views 3 4"]
+    intrinsics: Float[Tensor, "views 4"]
+
+
+def target_rgb(image: Tensor, background: Tensor) -> Float[Tensor, "rays 3"]:
+    """Ground-truth colour; images with alpha are composited on the same background as the render."""
+    if image.shape[-1] == 4:
+        return composite(image[..., :3], image[..., 3:], background)
+    return image[..., :3]
+
+
+def on_background(
+    rgb: Float[Tensor, "rays 3"], accumulation: Float[Tensor, "rays 1"], rendered_on: Tensor, wanted: Tensor
+) -> Float[Tensor, "rays 3"]:
+    """A render composited on ``rendered_on`` as it would be on ``wanted``: the background contributes
+    (1 - accumulation) of its colour (volume rendering's last term), so swap that share."""
+    return rgb + (1.0 - accumulation) * (wanted - rendered_on)
+
+
+def scale_color_weights(cfg: "FrugalNeRFSettings", num_scales: int, decay: float) -> List[float]:
+    """Eq. 1's per-scale weights: the full scale's, then each lower scale's (decaying with the schedule)."""
+    return [cfg.full_scale_color_weight] + [cfg.lower_scale_color_weight * decay] * (num_scales - 1)
+
+
+def training_losses(
+    cfg: "FrugalNeRFSettings",
+    field_: FrugalNeRFField,
+    render: StepRender,
+    batch: TrainBatch,
+    views: Optional[ReferenceViews],
+    decay: float,
+    occlusion_active: bool,
+) -> Dict[str, Tensor]:
+    """Every term of the objective for one training step (nerfstudio sums them)."""
+    device = render.background.device
+    target = target_rgb(batch.image.to(device), render.background)
+    predictions = [scale.rgb[batch.train] for scale in render.scales]
+    terms = {"rgb_loss": losses.multiscale_color_loss(predictions, target, scale_color_weights(cfg, len(predictions), decay))}
+    with record_function("regularizers"):
+        terms.update(grid_regularizers(cfg, field_, decay))
+        terms.update(sample_regularizers(cfg, field_, render, decay, occlusion_active))
+    adaptation = geometric_adaptation(cfg, render, batch, views)
+    if adaptation is not None:  # Eq. 10: training patches and novel rays
+        terms["geo_loss"] = cfg.geo_weight * (adaptation.loss_train + adaptation.loss_novel)
+    if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
+        sparse = sum(losses.inverse_depth_loss(d[batch.sparse], batch.sparse_depth.to(device)) for d in render.metric_depths)
+        terms["sparse_depth"] = cfg.sparse_depth_weight * decay * sparse
+    if cfg.mono_depth_weight > 0 and batch.mono_depth is not None:  # L_d at every scale
+        view = batch.indices[:, 0].to(device)
+        mono = sum(losses.per_view_pearson_loss(d[batch.train], batch.mono_depth.to(device), view) for d in render.metric_depths)
+        terms["mono_depth"] = cfg.mono_depth_weight * decay * mono
+    if cfg.depth_smoothness_weight > 0 and batch.num_novel >= 4:
+        terms["depth_smoothness"] = cfg.depth_smoothness_weight * decay * novel_depth_smoothness(field_, render, batch)
+    return terms
+
+
+def eval_losses(
+    cfg: "FrugalNeRFSettings", field_: FrugalNeRFField, outputs: Dict[str, Tensor], batch: EvalBatch,
+    background: Tensor, decay: float,
+) -> Dict[str, Tensor]:
+    """The terms an eval batch (single test pixels, no training context) can have: Eq. 1 over the scales
+    that were rendered, and the grid regularisers."""
+    from frugalnerf_ns.model.rendering import scale_suffix
+
+    target = target_rgb(batch.image.to(background.device), background)
+    rendered = [s for s in range(field_.num_scales) if f"rgb{scale_suffix(s)}" in outputs]
+    weights = scale_color_weights(cfg, field_.num_scales, decay)
+    terms = {
+        "rgb_loss": losses.multiscale_color_loss(
+            [outputs[f"rgb{scale_suffix(s)}"] for s in rendered], target, [weights[s] for s in rendered]
+        )
+    }
+    terms.update(grid_regularizers(cfg, field_, decay))
+    return terms
+
+
+def grid_regularizers(cfg: "FrugalNeRFSettings", field_: FrugalNeRFField, decay: float) -> Dict[str, Tensor]:
+    """TV on the appearance grid, edge-aware TV and L1 on the density grid, at every scale's view of them."""
+    terms: Dict[str, Tensor] = {}
+    for scale in range(field_.num_scales):
+        stride = field_.stride(scale)
+        factor = 1.0 / stride**2
+        density_planes, density_lines = field_.density_grid.scale_views(stride)
+        app_planes, app_lines = field_.appearance_grid.scale_views(stride)
+        if cfg.appearance_tv_weight > 0:
+            tv = losses.grid_tv_loss(app_planes, app_lines, cfg.tv_plane_weight, cfg.tv_line_weight)
+            _add(terms, "tv_appearance", cfg.appearance_tv_weight * decay * factor * tv)
+        if cfg.density_tv_weight > 0:
+            tv = losses.grid_tv_loss(density_planes, density_lines, cfg.tv_plane_weight, cfg.tv_line_weight, edge_planes=app_planes)
+            _add(terms, "tv_density", cfg.density_tv_weight * decay * factor * tv)
+        if cfg.density_l1_weight > 0:
+            _add(terms, "l1_density", cfg.density_l1_weight * factor * losses.density_l1_loss(density_planes, density_lines))
+    return terms
+
+
+def sample_regularizers(
+    cfg: "FrugalNeRFSettings", field_: FrugalNeRFField, render: StepRender, decay: float, occlusion_active: bool
+) -> Dict[str, Tensor]:
+    """Distortion (its weight grows with the schedule) and, for object scenes, occlusion, at every scale."""
+    terms: Dict[str, Tensor] = {}
+    for scale, scale_render in enumerate(render.scales):
+        stride = field_.stride(scale)
+        factor = 1.0 / stride**2
+        if cfg.distortion_weight > 0:
+            dist = losses.distortion_loss(scale_render.weights, scale_render.t, field_.sample_step(scale, cfg.step_ratio))
+            _add(terms, "distortion", cfg.distortion_weight / decay * factor * dist)
+        if cfg.occlusion_weight > 0 and occlusion_active:
+            # Lower scales take proportionally fewer samples: the same distance from the camera.
+            occ = losses.occlusion_loss(
+                scale_render.densities,
+                scale_render.colors if cfg.occlusion_background_prior else None,
+                max(1, cfg.occlusion_near_samples // stride),
+                max(1, cfg.occlusion_background_samples // stride),
+                shaded=scale_render.shaded,
+            )
+            _add(terms, "occlusion", cfg.occlusion_weight * decay * factor * occ)
+    return terms
+
+
+def novel_depth_smoothness(field_: FrugalNeRFField, render: StepRender, batch: TrainBatch) -> Tensor:
+    """Depth smoothness of the novel rays' 2x2 patches at every scale (lower scales / ratio^2l), in the depth
+    the field renders in (NDC t in NDC scenes)."""
+    total = render.background.new_zeros(())
+    for scale, scale_render in enumerate(render.scales):
+        depth = scale_render.depth[batch.novel, 0]
+        patches = depth[: batch.num_novel // 4 * 4].reshape(-1, 2, 2)
+        total = total + losses.depth_smoothness_loss(patches) / field_.stride(scale) ** 2
+    return total
+
+
+def geometric_adaptation(
+    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews]
+) -> Optional[AdaptationResult]:
+    """Eq. 2-9 on the step's training and novel rays, computed once per step (the metrics and the loss share
+    it); None when lambda_geo is 0 or there are no training views to warp into."""
+    if cfg.geo_weight <= 0 or views is None:
+        return None
+    if render.adaptation is None:
+        warped = batch.warped
+        white = torch.ones(3, device=render.background.device)
+        target = target_rgb(batch.image.to(white.device), white)
+        # Eq. 6: novel rays have no ground truth; their own (detached) render is warped instead. The views
+        # they are compared with are composited on white, so the render is too: on this step's random
+        # background (black half the time) every ray with accumulation < 1 would count as a large error.
+        full = render.scales[0]
+        novel_rgb = on_background(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
+        source = torch.cat([target, novel_rgb.detach()])
+        with record_function("geometric_adaptation"):
+            render.adaptation = cross_scale_geometric_adaptation(
+                render.origins[warped],
+                render.directions[warped],
+                torch.stack([depth[warped] for depth in render.metric_depths]),
+                torch.stack([scale.depth[warped, 0] for scale in render.scales]),
+                source,
+                batch.nearest_view,
+                batch.num_train,
+                batch.patch_size,
+                views.images,
+                views.camera_to_worlds,
+                views.intrinsics,
+                cfg.reprojection_threshold,
+                cfg.reprojection_error,
+            )
+    return render.adaptation
+
+
+def _add(terms: Dict[str, Tensor], name: str, value: Tensor) -> None:
+    terms[name] = terms.get(name, 0.0) + value

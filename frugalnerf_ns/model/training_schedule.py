@@ -1,0 +1,138 @@
+"""The training schedule of a FrugalNeRF model: what happens at given steps (TensoRF's grid upsampling and
+alpha mask, FrugalNeRF's loss-weight decay, the record of the geometric adaptation's scale fractions) and the
+grid optimiser that each resize recreates. The steps are fractions of the run's schedule length
+(``--schedule-steps``), so a resumed or shortened run keeps the same curve."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional, Protocol, Tuple
+
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField, resolution_for_voxels
+from frugalnerf_ns.field.tensorial import OptimizerState
+from frugalnerf_ns.model import losses
+from frugalnerf_ns.model.config import FrugalNeRFSettings
+from frugalnerf_ns.model.geometric_adaptation import ScaleFractionHistory
+
+
+class ScheduledModel(Protocol):
+    """What the schedule reads and sets on the model (FrugalNeRFModel; named by its parts, not its module, which
+    imports this one)."""
+
+    config: FrugalNeRFSettings
+    field: FrugalNeRFField
+    upsample_voxels: List[int]
+    scale_history: ScaleFractionHistory
+    step: int
+    loss_schedule_factor: float
+
+
+def training_callbacks(model: ScheduledModel, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+    """What happens at given steps of training, in the order nerfstudio runs them: the model learns the step and
+    its loss-weight decay before each step; after it come the grid upsampling, the alpha mask (and the box
+    shrink the first time) and, at checkpoints, the plot of the geometric adaptation's scale fractions (and at
+    the end)."""
+    length = schedule_length(training_callback_attributes)
+    upsample_steps = steps_at(model.config.upsample_at, length)
+    alpha_mask_steps = steps_at(model.config.alpha_mask_at, length)
+
+    def upsample(step: int) -> None:
+        # Fractions that round to the same step (a very short run) upsample once, to the later size.
+        voxels = model.upsample_voxels[max(i for i, s in enumerate(upsample_steps) if s == step)]
+        box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
+        state = carried_grid_state(model, training_callback_attributes)
+        model.field.upsample(resolution_for_voxels(voxels, box), state)
+        _restart_grid_optimizer(training_callback_attributes, state)
+
+    def update_alpha_mask(step: int) -> None:
+        occupied_box = model.field.update_alpha_mask(
+            model.config.step_ratio, model.config.distance_scale, model.config.alpha_mask_threshold
+        )
+        if step == alpha_mask_steps[0]:
+            # Keep the voxel count while the box shrinks: the freed voxels refine the occupied region.
+            voxels = int(model.field.density_grid.resolution.prod())
+            state = carried_grid_state(model, training_callback_attributes)
+            model.field.shrink(occupied_box, state)
+            box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
+            model.field.upsample(resolution_for_voxels(voxels, box), state)
+            _restart_grid_optimizer(training_callback_attributes, state)
+
+    def follow_step(step: int) -> None:
+        model.step = step
+
+    def save_scale_fractions(step: int) -> None:
+        # Written at every checkpoint too, so an interrupted run still has its plot.
+        trainer = training_callback_attributes.trainer
+        if trainer is not None and model.scale_history.steps and step % trainer.config.steps_per_save == 0:
+            model.scale_history.write(Path(trainer.base_dir))
+
+    def plot_scale_fractions(step: int) -> None:
+        trainer = training_callback_attributes.trainer
+        if trainer is not None and model.scale_history.steps:
+            path = model.scale_history.write(Path(trainer.base_dir))
+            CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
+
+    def schedule_loss_weights(step: int) -> None:
+        # From the absolute step (not accumulated), so a resumed run continues the same curve.
+        if length is not None:
+            model.loss_schedule_factor = losses.loss_weight_schedule(step, length, model.config.loss_weight_decay)
+
+    return [
+        TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], follow_step),
+        TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], schedule_loss_weights),
+        TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=tuple(sorted(set(upsample_steps)))),
+        TrainingCallback(
+            [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=tuple(sorted(set(alpha_mask_steps)))
+        ),
+        TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], save_scale_fractions),
+        TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], plot_scale_fractions),
+    ]
+
+
+def carried_grid_state(model: ScheduledModel, attributes: TrainingCallbackAttributes) -> Optional[OptimizerState]:
+    """The grid optimiser's state, for the resize to carry over (``carry_optimizer_state``); else None."""
+    if not model.config.carry_optimizer_state or attributes.optimizers is None:
+        return None
+    optimizer = attributes.optimizers.optimizers.get("encodings")
+    return None if optimizer is None else optimizer.state
+
+
+def schedule_length(attributes: TrainingCallbackAttributes) -> Optional[int]:
+    """Steps every schedule spans (upsampling, alpha mask, the decaying loss weights, the learning rates):
+    FrugalTrainer resolves it once per run (``trainer.schedule_steps``: the run's iterations, or the
+    checkpoint's when resuming); another trainer's run length; None without a trainer (no schedules)."""
+    trainer = attributes.trainer
+    if trainer is None:
+        return None
+    resolved = getattr(trainer, "schedule_steps", None)
+    return int(resolved) if resolved else int(trainer.config.max_num_iterations)
+
+
+def steps_at(fractions: Tuple[float, ...], length: Optional[int]) -> List[int]:
+    """The steps at ``fractions`` of a schedule of ``length`` steps (one per fraction, inside the run)."""
+    if not length:
+        return []
+    return [min(length - 1, max(1, round(f * length))) for f in fractions]
+
+
+def _restart_grid_optimizer(attributes: TrainingCallbackAttributes, carried: Optional[OptimizerState] = None) -> None:
+    """Recreate the grid optimiser for the resized tensors; its lr restarts. ``carried``: the old optimiser's
+    state re-keyed to the new tensors (``carried_grid_state``), which the new one continues from."""
+    optimizers, pipeline = attributes.optimizers, attributes.pipeline
+    if optimizers is None or pipeline is None:
+        return
+    config = optimizers.config["encodings"]
+    params = pipeline.get_param_groups()["encodings"]
+    optimizers.optimizers["encodings"] = config["optimizer"].setup(params=params)
+    if carried:
+        for param in params:
+            if param in carried:
+                optimizers.optimizers["encodings"].state[param] = carried[param]
+    optimizers.parameters["encodings"] = params
+    if config.get("scheduler"):
+        optimizers.schedulers["encodings"] = (
+            config["scheduler"].setup().get_scheduler(optimizer=optimizers.optimizers["encodings"], lr_init=config["optimizer"].lr)
+        )

@@ -1,0 +1,96 @@
+"""The pipeline of every FrugalNeRF run: nerfstudio's, plus handing the training views to the model.
+
+Outside training the model renders arbitrary cameras (viewer, ns-render) without a batch, so the warping
+context of the cross-scale geometric adaptation (training images and cameras) must come from the
+datamanager once, at set-up. Only datamanagers that loaded their training images (training, ns-eval and
+the viewer; not ns-render, which opens no images) have it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Type
+
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from frugalnerf_ns.run.checkpoints import use_intact_checkpoints_in_eval_tools
+from frugalnerf_ns.errors import one_line_errors
+from frugalnerf_ns.tools.video import teach_ns_render_spiral
+
+
+@dataclass
+class FrugalPipelineConfig(VanillaPipelineConfig):
+    """nerfstudio's pipeline; the model also receives the training views for its viewer outputs."""
+
+    _target: Type = field(default_factory=lambda: FrugalPipeline)
+
+
+class FrugalPipeline(VanillaPipeline):
+    def __init__(self, config: FrugalPipelineConfig, device: str, *args, **kwargs) -> None:
+        # Every nerfstudio command that reads data builds the pipeline: bad data ends it with one line.
+        with one_line_errors():
+            super().__init__(config, device, *args, **kwargs)
+        use_intact_checkpoints_in_eval_tools(FrugalPipeline)
+        teach_ns_render_spiral(self)
+        images = getattr(self.datamanager, "warp_images", None)
+        set_views = getattr(self.model, "set_reference_views", None)
+        if images is not None and set_views is not None:
+            set_views(images, self.datamanager.warp_camera_to_worlds, self.datamanager.warp_intrinsics)
+        if self.test_mode == "val" and hasattr(self.datamanager, "scene_layout") and hasattr(self.model, "scene_type"):
+            CONSOLE.print(scene_summary(self.datamanager, self.model))
+
+
+def scene_summary(datamanager, model) -> str:
+    """One short summary of what training will model for this scene, and how to override each choice."""
+    layout, dm, cfg = datamanager.scene_layout, datamanager.config, model.config
+    detected = "detected" if dm.scene_type == "auto" else "set by --pipeline.datamanager.scene-type"
+    views = len(datamanager.warp_images)
+    if model.ndc is not None:
+        space = "NDC (forward-facing, the data's near/far bounds)"
+    else:
+        size = model.field.aabb[1] - model.field.aabb[0]
+        space = "bounded box " + " x ".join(f"{v:.3g}" for v in size.tolist())
+        original = getattr(datamanager, "fitted_box", None)
+        if original is not None:
+            share = float(size.prod() / (original[1] - original[0]).prod())
+            points = "" if datamanager.sparse is None else " and the sparse points"
+            space += (
+                f" (fitted to what the training views see{points}: {share:.0%} of the dataparser's box; "
+                "--pipeline.datamanager.fit-scene-box False keeps it)"
+            )
+        elif getattr(dm, "fit_scene_box", False):
+            space += " (the training views see all of the dataparser's box)"
+    side = round(model.final_voxels ** (1 / 3))
+    pixels = (model.kwargs.get("metadata") or {}).get("frugalnerf_scene", {}).get("num_train_pixels", 0)
+    grid = f"{side}^3 final grid " + (
+        f"(auto: {pixels:,} training pixels)" if cfg.auto_grid else "(--pipeline.model.final-voxels; --pipeline.model.auto-grid sizes it from the pixels)"
+    )
+    if not dm.sparse_depth or dm.num_sparse_rays_per_batch <= 0:
+        sparse = "off (option)"
+    elif views < 2:
+        sparse = "off (one view)"
+    elif datamanager.sparse is None:
+        sparse = f"off (fewer than {dm.min_sparse_points} points)"
+    else:
+        sparse = f"on ({datamanager.sparse.num_points} points)"
+    if datamanager.novel_cameras is not None:
+        novel = f"on ({len(datamanager.novel_cameras)} {datamanager.novel_path} poses)"
+    else:
+        novel = "off (360 scene)" if datamanager.scene_type == "360" and dm.novel_views else "off (option)"
+    if cfg.occlusion_weight <= 0:
+        occlusion = "off (weight 0)"
+    else:
+        occlusion = "on" if model.occlusion_active else "off (not an object scene)"
+    if cfg.geo_weight <= 0:
+        geo = "off (weight 0)"
+    elif views < 2:
+        geo = "novel rays only (one view)" if datamanager.novel_cameras is not None else "off (one view, no novel rays)"
+    else:
+        geo = "on"
+    return (
+        f"frugalnerf scene: {datamanager.scene_type} ({detected}: views within {layout.spread_degrees:.1f} deg of their "
+        f"mean, cameras cover {layout.coverage_degrees:.0f} deg around the focus); {views} training views\n"
+        f"  space: {space}; {grid}\n"
+        f"  losses: geometric adaptation {geo}, novel rays {novel}, sparse depth {sparse}, occlusion {occlusion}"
+    )
