@@ -121,11 +121,12 @@ def test_a_run_trains_and_scores_with_the_code_of_the_checkout_that_started_it(t
 
     checkout = tmp_path / "worktree"
     package = checkout / "frugalnerf_ns"
-    package.mkdir(parents=True)
+    (package / "tools").mkdir(parents=True)
     (package / "__init__.py").write_text("")
+    (package / "tools" / "__init__.py").write_text("")
     # Stands in for the worktree's version of the tools: it says which file ran, and leaves what the runner
     # looks for (a checkpoint; a RESULT line).
-    (package / "offline_tools.py").write_text(
+    (package / "tools" / "offline_tools.py").write_text(
         "import json, pathlib, sys\n"
         "args = sys.argv[1:]\n"
         "if args[0] == 'train':\n"
@@ -148,7 +149,7 @@ def test_a_run_trains_and_scores_with_the_code_of_the_checkout_that_started_it(t
     assert record["status"] == "ok", record
     assert record["psnr"] == 12.5 and record["commit"] == commit and record["code_root"] == str(checkout)
     ckpt = next((tmp_path / "out" / "runs").rglob("step-*.ckpt"))
-    assert ckpt.read_text() == str(package / "offline_tools.py")  # the worktree's code trained
+    assert ckpt.read_text() == str(package / "tools" / "offline_tools.py")  # the worktree's code trained
 
 
 # ---- on a local Ray instance -----------------------------------------------------------------------------
