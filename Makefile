@@ -26,7 +26,7 @@ test-slow: setup
 	$(VENV)/bin/python -m pytest -q -m slow
 
 benchmark: setup
-	$(VENV)/bin/python scripts/benchmark_vs_tensorf.py
+	$(VENV)/bin/frugalnerf-bench vs-tensorf
 
 # The quality gate (configs/gate.yaml): the CPU presets on fern, flower, horns and DTU scan65 against
 # configs/gate_baseline.yaml; exits non-zero on a regression (~75 min on 2 cores).

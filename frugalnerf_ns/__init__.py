@@ -3,6 +3,7 @@
 The package is a house of rooms, each importing only from its own floor or the floors below
 (``tests/test_layers.py`` fails on an upward import):
 
+6. ``bench/``    ``frugalnerf-bench``: the development measurements, one pipeline builder, one table writer
 5. ``run/``      presets, option checks, pipeline, trainer, checkpoints
 4. ``tools/``    offline evaluator, demo, video, ffmpeg, sweep runner and quality gate
 3. ``data/``     dataparsers, dataset, datamanager, sparse and monocular depth, splits, procedural scene

@@ -6,7 +6,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from tests.helpers import load_script
+from frugalnerf_ns.bench import scenes as bench
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +24,6 @@ def test_scene_config_uses_registered_presets_and_parsers():
 
 
 def test_markdown_table_has_a_row_per_run_and_averages():
-    bench = load_script("benchmark_scenes")
     runs = [
         {"scene": s, "method": m, "psnr": p, "ssim": 0.5, "lpips": 0.4, "train_seconds": 60.0, "checkpoint_mb": 10.0,
          "peak_rss_mib": 1000.0}
@@ -37,7 +36,6 @@ def test_markdown_table_has_a_row_per_run_and_averages():
 
 
 def test_markdown_table_shows_the_shorter_test_list_beside_the_full_one():
-    bench = load_script("benchmark_scenes")
     run = {"scene": "dtu", "method": "frugal", "psnr": 15.0, "ssim": 0.7, "lpips": 0.2, "regnerf25_psnr": 16.5,
            "regnerf25_ssim": 0.75, "regnerf25_lpips": 0.18, "train_seconds": 60.0, "checkpoint_mb": 1.0,
            "peak_rss_mib": 1.0}
@@ -93,7 +91,6 @@ def test_variant_runs_keep_the_registered_method_name_in_their_path(tmp_path):
 
 
 def test_markdown_table_with_seeds_adds_mean_and_spread_rows():
-    bench = load_script("benchmark_scenes")
     runs = [
         {"scene": s, "method": "frugal", "seed": seed, "psnr": p, "ssim": 0.5, "lpips": 0.4, "train_seconds": 60.0,
          "checkpoint_mb": 10.0, "peak_rss_mib": 1.0}

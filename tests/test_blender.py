@@ -178,10 +178,9 @@ def test_the_datamanager_calls_it_an_object_with_occlusion_and_novel_poses_aroun
 
 
 def test_startup_benchmark_times_every_stage_and_writes_json(blender_scene, tmp_path, capsys):
-    from tests.helpers import load_script
+    from frugalnerf_ns.bench import startup as script
 
     out = tmp_path / "startup.json"
-    script = load_script("benchmark_startup")
     script.main(["--data", str(blender_scene), "--views", "2", "10", "--all-pairs-up-to", "10", "--out", str(out)])
     rows = json.loads(out.read_text())["rows"]
     assert [r["views"] for r in rows] == [2, 10]

@@ -1,4 +1,4 @@
-"""scripts/gpu_check.py on a machine without a GPU: its one-line answer, and a dry run of its parts on the CPU."""
+"""``frugalnerf-bench gpu-check`` on a machine without a GPU: its one-line answer, and a dry run of its parts on the CPU."""
 
 from __future__ import annotations
 
@@ -10,12 +10,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.helpers import load_script
+from frugalnerf_ns.bench import gpu_check
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-gpu_check = load_script("gpu_check")
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
@@ -98,6 +95,7 @@ def test_dry_run_of_the_in_process_parts_writes_table_and_json(tmp_path, capsys)
 
 @pytest.mark.slow
 def test_dry_run_of_every_part(tmp_path):
+    # Through the path the device machine's instructions name (scripts/gpu_check.py -> frugalnerf-bench gpu-check).
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_check.py"), "--dry-run", "--scenes", "procedural",
                            "--out", str(tmp_path)], capture_output=True, text=True, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]

@@ -5,12 +5,14 @@ only later). The package's ``__init__`` says what each room holds.
 
 The floors, bottom to top:
 0. the package root: one-line errors, progress lines, keyed caches, the config tables, old module names;
-1. geometry (rays, NDC, reprojection, poses and paths, scene analysis), field (grids, field, colour MLP),
-   scoring (metrics, offline LPIPS);
+1. geometry (rays, NDC, reprojection, poses and paths, scene analysis, epipolar checks), field (grids, field,
+   colour MLP), scoring (metrics, offline LPIPS, pseudo-depth summary);
 2. model: config, rendering, objective, losses, geometric adaptation, batches, training schedule, scoring;
-3. data: datamanager, patches, training views, dataset, dataparsers, sparse points, monocular depth, splits, the procedural scene;
+3. data: datamanager, patches, training views, dataset, dataparsers, sparse points, COLMAP points, monocular depth,
+   splits, the procedural scene;
 4. tools: the offline evaluator, the demo, video rendering, ffmpeg, the sweep and the gate;
-5. run: trainer, pipeline, checkpoints, presets, options.
+5. run: trainer, pipeline, checkpoints, presets, options;
+6. bench: the measurements behind ``frugalnerf-bench`` (they build presets' pipelines, so they sit above run).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ FLOORS = {
     3: "data",
     4: "tools",
     5: "run",
+    6: "bench",
 }
 FLOOR = {name: floor for floor, names in FLOORS.items() for name in names.split()}
 
@@ -137,7 +140,7 @@ def test_an_import_circle_is_caught():
 
 def test_every_room_says_what_it_holds_and_its_floor():
     rooms = [p for p in sorted(PACKAGE.iterdir()) if (p / "__init__.py").is_file() and p.name in FLOOR]
-    assert {p.name for p in rooms} == {"geometry", "field", "scoring", "model", "data", "tools", "run"}
+    assert {p.name for p in rooms} == {"geometry", "field", "scoring", "model", "data", "tools", "run", "bench"}
     for room_dir in rooms:
         doc = ast.get_docstring(ast.parse((room_dir / "__init__.py").read_text())) or ""
         assert doc.startswith(f"Floor {FLOOR[room_dir.name]}, "), room_dir.name

@@ -4,7 +4,7 @@ from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS, find_alexnet_weigh
 from tests.lpips_fixture import fixed_image_pair
 
 # Reference LPIPS (lpips==0.1.4, net="alex", version 0.1) on fixed_image_pair(); how it was computed is in
-# scripts/reference_lpips.py (the reference network was loaded with the same AlexNet and linear weights).
+# scripts/diagnostics/reference_lpips.py (the reference network was loaded with the same AlexNet and linear weights).
 REFERENCE = [0.577190, 0.367484]
 
 

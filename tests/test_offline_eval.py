@@ -1,4 +1,4 @@
-"""The shared scorer of scripts/benchmark_scenes.py: masked rendering is exact, full scale only is the same."""
+"""The shared scorer of ``frugalnerf-bench scenes`` and the sweep runner: masked rendering is exact, full scale only is the same."""
 
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType

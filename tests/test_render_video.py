@@ -77,11 +77,11 @@ def test_ns_render_spiral_renders_the_scene_path_upright_at_full_scale(trained_r
 def test_render_benchmark_times_every_row_on_one_run(trained_run, tmp_path, capsys):
     import json
 
-    from tests.helpers import load_script
+    from frugalnerf_ns.bench import render
 
     _, run_dir = trained_run
     out = tmp_path / "render.json"
-    load_script("benchmark_render").main([str(run_dir / "config.yml"), "--frames", "2", "--views", "1", "--out", str(out)])
+    render.main([str(run_dir / "config.yml"), "--frames", "2", "--views", "1", "--out", str(out)])
     records = json.loads(out.read_text())
     assert [r["row"].split(",")[0] for r in records] == ["spiral frame"] * 2 + ["ns-eval per test view"] * 2 + ["offline evaluator per test view"]
     assert all(r["seconds"] > 0 for r in records) and "| spiral frame, now" in capsys.readouterr().out

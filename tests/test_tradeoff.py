@@ -1,4 +1,5 @@
-"""The speed/accuracy scripts end to end on the procedural scene: tradeoff.py (table, JSON, both plots) and model_size.py."""
+"""The speed/accuracy measurements end to end on the procedural scene, through the installed ``frugalnerf-bench``:
+``tradeoff`` (table, JSON, both plots) and ``model-size``."""
 
 import json
 import subprocess
@@ -7,16 +8,16 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import load_script
+from frugalnerf_ns.bench import tradeoff
 
-SCRIPT = Path(__file__).parents[1] / "scripts" / "tradeoff.py"
+BENCH = str(Path(sys.executable).parent / "frugalnerf-bench")  # the console script pyproject.toml installs
 
 
 def test_a_budget_is_only_the_iterations_and_the_schedule_follows():
     from frugalnerf_ns.run.presets import build_trainer_config
     from frugalnerf_ns.model.training_schedule import steps_at
 
-    assert load_script("tradeoff").budget_args("frugalnerf-cpu", 500) == ["--max-num-iterations", "500"]  # preset: 1500
+    assert tradeoff.budget_args("frugalnerf-cpu", 500) == ["--max-num-iterations", "500"]  # preset: 1500
     model = build_trainer_config("frugalnerf-cpu").pipeline.model
     # What the tradeoff script used to pass by hand, now derived from the run's length.
     assert steps_at(model.upsample_at, 500) == [50, 100, 150, 200, 250]
@@ -25,7 +26,6 @@ def test_a_budget_is_only_the_iterations_and_the_schedule_follows():
 
 
 def test_pareto_front_keeps_only_undominated_runs():
-    tradeoff = load_script("tradeoff")
     points = [{"run": "a", "seconds": 1, "psnr": 10, "lpips": 0.5}, {"run": "b", "seconds": 2, "psnr": 9, "lpips": 0.4},
               {"run": "c", "seconds": 3, "psnr": 12, "lpips": 0.6}]
     assert [p["run"] for p in tradeoff.pareto_front(points, "psnr", True)] == ["a", "c"]
@@ -36,7 +36,7 @@ def test_pareto_front_keeps_only_undominated_runs():
 def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tmp_path):
     out = tmp_path / "tradeoff"
     result = subprocess.run(
-        [sys.executable, str(SCRIPT), "--data", str(procedural_scene), "--parser", "frugal-nerfstudio --center-method focus",
+        [BENCH, "tradeoff", "--data", str(procedural_scene), "--parser", "frugal-nerfstudio --center-method focus",
          "--presets", "frugalnerf-tiny", "--budgets", "20", "--scales", "0", "--scales-budget", "20",
          "--grid-sides", "24", "--seed", "3", "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
         capture_output=True, text=True, timeout=900,
@@ -68,7 +68,7 @@ def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tm
 def test_model_size_script_measures_fixed_and_auto_grids(procedural_scene, tmp_path):
     out = tmp_path / "sizes.json"
     result = subprocess.run(
-        [sys.executable, str(SCRIPT.parent / "model_size.py"), "--data", str(procedural_scene), "--parser",
+        [BENCH, "model-size", "--data", str(procedural_scene), "--parser",
          "frugal-nerfstudio --center-method focus", "--presets", "frugalnerf-tiny", "--auto-grid", "--out", str(out)],
         capture_output=True, text=True, timeout=600,
     )

@@ -178,11 +178,10 @@ def test_viewer_outputs_offer_every_scale_and_the_pseudo_gt_scale_map(trained_ru
 def test_viewer_benchmark_script_times_every_render_mode(trained_run, tmp_path, capsys):
     import json
 
-    from tests.helpers import load_script
+    from frugalnerf_ns.bench import viewer as script
 
     _, run_dir = trained_run
     out = tmp_path / "viewer.json"
-    script = load_script("benchmark_viewer")
     script.main([str(run_dir / "config.yml"), "--max-res", "64", "--repeats", "1", "--out", str(out)])
     rows = json.loads(out.read_text())
     assert [row["mode"] for row in rows] == ["all scales + scale map", "all scales", "full scale only"]

@@ -65,7 +65,7 @@ class _BilinearSampleCPU(torch.autograd.Function):
     """grid_sample's forward, and its input gradient as four index_add_ calls.
 
     torch's CPU grid_sample backward parallelises over the batch, which is 1 for a grid's plane, and was
-    the largest single cost of a training step (scripts/profile_step.py); index_add_ over the four corners
+    the largest single cost of a training step (frugalnerf-bench profile); index_add_ over the four corners
     computes the same gradient (to float rounding) about 2.4x faster on 2 cores.
     """
 

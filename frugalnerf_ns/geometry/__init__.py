@@ -2,7 +2,9 @@
 
 NDC warps (``ndc``), ray-box intersection and sample positions (``raymarch``), reprojection and depth
 warps between views (``reprojection``), camera-convention changes and the one look-at frame
-(``camera_conventions``), the poses of novel views and videos (``novel_views``, ``video_path``), and what the
+(``camera_conventions``), the poses of novel views and videos (``novel_views``, ``video_path``), what the
 cameras say about a scene: forward-facing or surrounding, its box, the grid a pixel count asks for
-(``scene_analysis``). Imports only the package root (errors, progress) and other floor-1 rooms.
+(``scene_analysis``), and the epipolar geometry of two views: the fundamental matrix of two projections and
+each match's distance from its epipolar line, a check of converted cameras (``epipolar``). Imports only the
+package root (errors, progress) and other floor-1 rooms.
 """

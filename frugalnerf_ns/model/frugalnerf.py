@@ -184,7 +184,7 @@ class FrugalNeRFModel(Model):
         renders, metric_depths = [], []
         outputs: Dict[str, Union[Tensor, StepRender]] = {}
         for scale in range(self._scales_to_render()):
-            with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (scripts/profile_step.py)
+            with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                 render = render_scale(
                     self.field, origins, directions, scale, background, segments, cfg.step_ratio, cfg.distance_scale,
                     cfg.max_samples_per_ray, cfg.weight_threshold, jitter=self.training,

@@ -1,8 +1,8 @@
 """Profile FrugalNeRF training steps with torch.profiler: where a step's time goes (table + JSON).
 
-  python scripts/profile_step.py --data ../shared/data/llff/fern [--preset frugalnerf-cpu] [--steps 5]
+  frugalnerf-bench profile --data ../shared/data/llff/fern [--preset frugalnerf-cpu] [--steps 5]
          [--at-final-grid] [--out outputs/profile_step.json]
-  python scripts/profile_step.py --load-config <run>/config.yml     # a trained run: its grid and alpha mask
+  frugalnerf-bench profile --load-config <run>/config.yml     # a trained run: its grid and alpha mask
 
 Builds the preset's pipeline on the data (training split, as ns-train does), optionally upsamples the grid
 to the preset's final size first (the steady state of most of training), runs two warm-up steps, then
@@ -13,12 +13,13 @@ regularisers, backward, optimiser) and the operators with the most self CPU time
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
+
+from frugalnerf_ns.bench.report import markdown_table, write_report
 
 STAGES = ("data", "forward", "render_scale0", "render_scale1", "render_scale2", "geometric_adaptation", "losses",
           "regularizers", "backward", "optimizer")
@@ -31,24 +32,15 @@ def build_pipeline(args):
         # "val" sets the datamanager up for training (patches, novel and sparse-depth rays).
         _, pipeline, _, _ = eval_setup(args.load_config, test_mode="val")
         return pipeline
-    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
-    from frugalnerf_ns.run.presets import build_trainer_config
+    from frugalnerf_ns.bench.pipelines import preset_pipeline
 
-    config = build_trainer_config(args.preset)
-    config.pipeline.datamanager.data = args.data
-    config.pipeline.datamanager.dataparser.data = args.data
-    if args.train_views:
-        config.pipeline.datamanager.dataparser.train_views = tuple(args.train_views)
-    pipeline = config.pipeline.setup(device="cpu", test_mode="val")
-    model = pipeline.model
-    if args.at_final_grid:
-        box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
-        model.field.upsample(resolution_for_voxels(model.final_voxels, box))
+    _, pipeline = preset_pipeline(args.preset, args.data, train_views=args.train_views or None,
+                                  final_grid=args.at_final_grid)
     return pipeline
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench profile", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, help="scene folder (a fresh model of --preset)")
     parser.add_argument("--load-config", type=Path, help="config.yml of a trained run (instead of --data)")
     parser.add_argument("--preset", default="frugalnerf-cpu")
@@ -93,22 +85,17 @@ def main(argv=None) -> None:
     operators = sorted((e for e in averages if e.key not in STAGES and not e.key.startswith("ProfilerStep")),
                        key=lambda e: e.self_cpu_time_total, reverse=True)[: args.rows]
     resolution = tuple(model.field.density_grid.resolution.tolist())
-    print(f"{args.load_config or args.preset + ' on ' + args.data.name}: grid {resolution}, {seconds:.3f} s/step under the profiler")
-    print("| stage | s/step | share |\n|---|---|---|")
-    for name in STAGES:
-        if name in stages:
-            print(f"| {name} | {stages[name]:.3f} | {stages[name] / seconds:.0%} |")
-    print("| operator | self s/step | share | calls/step |\n|---|---|---|---|")
-    rows = []
-    for e in operators:
-        self_seconds = e.self_cpu_time_total / 1e6 / args.steps
-        rows.append({"operator": e.key, "self_seconds": self_seconds, "calls": e.count / args.steps})
-        print(f"| {e.key} | {self_seconds:.3f} | {self_seconds / seconds:.0%} | {e.count / args.steps:.0f} |")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"preset": args.preset, "source": str(source), "grid": resolution,
-                                    "seconds_per_step": seconds, "stages": stages, "operators": rows}, indent=2))
-    print(f"wrote {args.out}")
-
-
-if __name__ == "__main__":
-    main()
+    title = f"{args.load_config or args.preset + ' on ' + args.data.name}: grid {resolution}, {seconds:.3f} s/step under the profiler"
+    stage_rows = [{"stage": name, "seconds": stages[name]} for name in STAGES if name in stages]
+    rows = [{"operator": e.key, "self_seconds": e.self_cpu_time_total / 1e6 / args.steps, "calls": e.count / args.steps}
+            for e in operators]
+    table = "\n\n".join([
+        title,
+        markdown_table(stage_rows, [("stage", lambda r: r["stage"]), ("s/step", lambda r: f"{r['seconds']:.3f}"),
+                                    ("share", lambda r: f"{r['seconds'] / seconds:.0%}")]),
+        markdown_table(rows, [("operator", lambda r: r["operator"]), ("self s/step", lambda r: f"{r['self_seconds']:.3f}"),
+                              ("share", lambda r: f"{r['self_seconds'] / seconds:.0%}"),
+                              ("calls/step", lambda r: f"{r['calls']:.0f}")]),
+    ])
+    write_report("profile", table, {"preset": args.preset, "source": str(source), "grid": resolution,
+                                    "seconds_per_step": seconds, "stages": stages, "operators": rows}, args.out)

@@ -1,6 +1,6 @@
 """Check the viewer in a real browser: headless Chromium opens ns-viewer's page and saves a screenshot.
 
-  python scripts/check_viewer_browser.py [--load-config <run>/config.yml] [--screenshot viewer.png]
+  python scripts/diagnostics/check_viewer_browser.py [--load-config <run>/config.yml] [--screenshot viewer.png]
 
 Without --load-config it first trains frugalnerf-tiny on the procedural scene (a few minutes on a CPU).
 Chromium comes from Debian (``apt-get install chromium``, run by this script when it is missing). The
@@ -29,7 +29,7 @@ from typing import Optional
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 
 

@@ -1,6 +1,6 @@
 """Render time of a trained FrugalNeRF run before and after issue 23, side by side in one process.
 
-  python scripts/benchmark_render.py <run>/config.yml [--frames 4] [--views 3] [--out outputs/benchmark_render.json]
+  frugalnerf-bench render <run>/config.yml [--frames 4] [--views 3] [--out outputs/benchmark_render.json]
 
 Rows (seconds per frame or per test view, same machine, same model, same image size):
 - spiral frame, before: nerfstudio's ``get_spiral_path`` from the first test camera, every scale rendered
@@ -15,10 +15,11 @@ Prints a Markdown table and writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
+
+from frugalnerf_ns.bench.report import markdown_table, write_report
 
 
 def timed(fn) -> float:
@@ -28,7 +29,7 @@ def timed(fn) -> float:
 
 
 def main(argv=None) -> list:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench render", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", type=Path, help="config.yml of a trained FrugalNeRF run")
     parser.add_argument("--frames", type=int, default=4, help="spiral frames timed per row")
     parser.add_argument("--views", type=int, default=3, help="test views timed per evaluation row (at most all)")
@@ -88,14 +89,7 @@ def main(argv=None) -> list:
     model.num_rendered_scales = None
     records = [{"run": str(args.config.parent), "row": name, "seconds": seconds, "image": size,
                 "threads": torch.get_num_threads(), "device": str(pipeline.device)} for name, seconds in rows]
-    print(f"| {args.config.parent} ({size}, {torch.get_num_threads()} threads) | seconds |\n|---|---|")
-    for name, seconds in rows:
-        print(f"| {name} | {seconds:.2f} |")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(records, indent=2))
-    print(f"benchmark_render: wrote {args.out}")
+    heading = f"{args.config.parent} ({size}, {torch.get_num_threads()} threads)"
+    table = markdown_table(records, [(heading, lambda r: r["row"]), ("seconds", lambda r: f"{r['seconds']:.2f}")])
+    write_report("benchmark_render", table, records, args.out)
     return records
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """How fast the viewer renders a trained run on this machine, per render mode (table + JSON).
 
-  python scripts/benchmark_viewer.py <run>/config.yml [<run2>/config.yml ...] [--out outputs/viewer.json]
+  frugalnerf-bench viewer <run>/config.yml [<run2>/config.yml ...] [--out outputs/viewer.json]
 
 For every run: the full-resolution frame the viewer shows when the camera rests (``--max-res``, nerfstudio's
 default 512) and the preview it renders while the camera moves, in three modes: every scale plus the
@@ -12,13 +12,14 @@ scales" checkbox off). nerfstudio sizes the moving preview from the measured ray
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import Dict, List
 
 import torch
 from nerfstudio.utils.eval_utils import eval_setup
+
+from frugalnerf_ns.bench.report import markdown_table, write_report
 
 MODES = {
     "all scales + scale map": (True, True),
@@ -73,7 +74,7 @@ def benchmark_run(config: Path, max_res: int, repeats: int) -> List[Dict]:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench viewer", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("configs", type=Path, nargs="+", help="config.yml of trained runs")
     parser.add_argument("--max-res", type=int, default=512, help="the viewer's Max res (nerfstudio default 512)")
     parser.add_argument("--repeats", type=int, default=2, help="renders per measurement; the fastest counts")
@@ -83,16 +84,10 @@ def main(argv=None) -> None:
         if not config.is_file():
             parser.error(f"no config at {config} (pass a run's config.yml)")
     rows = [row for config in args.configs for row in benchmark_run(config, args.max_res, args.repeats)]
-    print("| run | mode | still frame | s/frame | rays/s | moving preview | s/preview |\n|---|---|---|---|---|---|---|")
-    for row in rows:
-        print(
-            f"| {Path(row['run']).parent.parent.name} | {row['mode']} | {row['frame']} | {row['frame_seconds']:.2f} | "
-            f"{row['rays_per_second']:,.0f} | {row['preview']} | {row['preview_seconds']:.3f} |"
-        )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(rows, indent=2))
-    print(f"wrote {args.out}")
-
-
-if __name__ == "__main__":
-    main()
+    table = markdown_table(rows, [
+        ("run", lambda r: Path(r["run"]).parent.parent.name), ("mode", lambda r: r["mode"]),
+        ("still frame", lambda r: r["frame"]), ("s/frame", lambda r: f"{r['frame_seconds']:.2f}"),
+        ("rays/s", lambda r: f"{r['rays_per_second']:,.0f}"), ("moving preview", lambda r: r["preview"]),
+        ("s/preview", lambda r: f"{r['preview_seconds']:.3f}"),
+    ])
+    write_report("benchmark_viewer", table, rows, args.out)

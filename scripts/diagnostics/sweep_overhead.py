@@ -1,7 +1,7 @@
 """What a sweep costs over running the same trainings one after another, and what the one-training-per-2-cores
 rule buys: one table and a JSON file.
 
-  python scripts/sweep_overhead.py [--runs 4] [--iterations 150] [--out outputs/sweep_overhead]
+  python scripts/diagnostics/sweep_overhead.py [--runs 4] [--iterations 150] [--out outputs/sweep_overhead]
 
 Modes, each on the same runs (frugalnerf-tiny on the procedural scene, one seed per run, train + score):
   direct        the runs one after another in this process, no Ray (the baseline)

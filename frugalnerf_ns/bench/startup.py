@@ -6,7 +6,7 @@ grow linearly with the views; ``--all-pairs-up-to N`` also times the matching st
 matcher on every pair) for view counts up to N, side by side.
 
 Usage:
-  python scripts/benchmark_startup.py --data <nerf_synthetic/lego> [--views 2 8 30 100]
+  frugalnerf-bench startup --data <nerf_synthetic/lego> [--views 2 8 30 100]
          [--all-pairs-up-to 30] [--out outputs/startup_benchmark.json]
 
 Any layout frugal-auto reads works (the views are its --num-train-views); the issue's target is a Blender
@@ -16,7 +16,6 @@ scene at 400x400: at most linear growth and under 60 s for 100 views on 2 cores.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -26,7 +25,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-ROOT = Path(__file__).resolve().parents[1]
+from frugalnerf_ns.bench.report import markdown_table, write_report
+from frugalnerf_ns.tools.sweep.grid import ROOT
 
 
 def load_training_images(paths) -> List[np.ndarray]:
@@ -112,22 +112,21 @@ def time_views(data: Path, views: int, all_pairs: bool) -> Dict[str, float]:
 
 
 def table(rows: List[Dict[str, float]]) -> str:
-    lines = [
-        "| views | size | parse s | load s | SIFT s | pairs | match s | triangulate s | total s | s/view | points | before: all pairs, SIFT + match s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        before = f"{r['before_sift_and_match_s']:.1f} ({r['before_pairs']} pairs)" if "before_pairs" in r else "-"
-        lines.append(
-            f"| {r['views']} | {r['width']}x{r['height']} | {r['parse_s']:.2f} | {r['load_s']:.2f} | {r['sift_s']:.2f} | "
-            f"{r['pairs']} | {r['match_s']:.2f} | {r['triangulate_s']:.2f} | {r['total_s']:.1f} | "
-            f"{r['total_per_view_s']:.2f} | {r['points']} | {before} |"
-        )
-    return "\n".join(lines)
+    def before(r: Dict[str, float]) -> str:
+        return f"{r['before_sift_and_match_s']:.1f} ({r['before_pairs']} pairs)" if "before_pairs" in r else "-"
+
+    return markdown_table(rows, [
+        ("views", lambda r: r["views"]), ("size", lambda r: f"{r['width']}x{r['height']}"),
+        ("parse s", lambda r: f"{r['parse_s']:.2f}"), ("load s", lambda r: f"{r['load_s']:.2f}"),
+        ("SIFT s", lambda r: f"{r['sift_s']:.2f}"), ("pairs", lambda r: r["pairs"]),
+        ("match s", lambda r: f"{r['match_s']:.2f}"), ("triangulate s", lambda r: f"{r['triangulate_s']:.2f}"),
+        ("total s", lambda r: f"{r['total_s']:.1f}"), ("s/view", lambda r: f"{r['total_per_view_s']:.2f}"),
+        ("points", lambda r: r["points"]), ("before: all pairs, SIFT + match s", before),
+    ])
 
 
 def main(argv: Optional[List[str]] = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench startup", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="scene folder (any layout frugal-auto reads)")
     parser.add_argument("--views", type=int, nargs="+", default=[2, 8, 30, 100])
     parser.add_argument("--all-pairs-up-to", type=int, default=0, help="also time the old all-pairs matching up to N views")
@@ -143,13 +142,5 @@ def main(argv: Optional[List[str]] = None) -> None:
         except DataError as err:
             sys.exit(f"benchmark_startup: {err}")
         print(f"startup: {views} views: {rows[-1]['total_s']:.1f} s", flush=True)
-    text = table(rows)
-    print()
-    print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"data": str(args.data), "threads": torch.get_num_threads(), "rows": rows}, indent=2))
-    print(f"\nwrote {args.out}")
-
-
-if __name__ == "__main__":
-    main()
+    write_report("benchmark_startup", table(rows),
+                 {"data": str(args.data), "threads": torch.get_num_threads(), "rows": rows}, args.out)

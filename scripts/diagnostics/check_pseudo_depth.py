@@ -1,6 +1,6 @@
 """Are the pseudo depths of cross-scale geometric adaptation right? Checked against COLMAP's points.
 
-  python scripts/check_pseudo_depth.py <run>/config.yml [--max-points 4000]
+  python scripts/diagnostics/check_pseudo_depth.py <run>/config.yml [--max-points 4000]
 
 For an LLFF run (poses_bounds.npy and sparse/0/points3D.bin from the full capture, all views): every COLMAP
 point seen in front of a camera gives an independent depth along that camera's ray. At those pixels of the
@@ -16,49 +16,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import struct
 from pathlib import Path
-from typing import Dict
 
-import numpy as np
 import torch
-
-
-def read_points3d_bin(path: Path) -> np.ndarray:
-    """XYZ of every point in a COLMAP ``points3D.bin`` (id, xyz, rgb, error, track)."""
-    with open(path, "rb") as f:
-        (count,) = struct.unpack("<Q", f.read(8))
-        points = np.empty((count, 3))
-        for n in range(count):
-            _, x, y, z = struct.unpack("<Qddd", f.read(32))
-            f.read(3 + 8)  # rgb, reprojection error
-            (track,) = struct.unpack("<Q", f.read(8))
-            f.read(8 * track)  # (image id, point2D index) int32 pairs
-            points[n] = (x, y, z)
-    return points
-
-
-def summarise(depths: torch.Tensor, truth: torch.Tensor, chosen: torch.Tensor) -> Dict[str, object]:
-    """``depths`` (scales, rays), ``truth`` (rays), ``chosen`` (rays; -1 left out)."""
-    relative = ((depths - truth[None]).abs() / truth[None])  # scales rays
-    closest = relative.argmin(dim=0)
-    picked = chosen >= 0
-    num_scales = depths.shape[0]
-    pseudo = relative.gather(0, chosen.clamp_min(0)[None])[0]
-    return {
-        "rays": int(truth.numel()),
-        "median_relative_error_per_scale": [float(relative[s].median()) for s in range(num_scales)],
-        "closest_fraction_per_scale": [float((closest == s).float().mean()) for s in range(num_scales)],
-        "picked_fraction_per_scale": [float((chosen == s).float().mean()) for s in range(num_scales)],
-        "left_out_fraction": float((~picked).float().mean()),
-        "pick_is_closest": float((chosen[picked] == closest[picked]).float().mean()) if picked.any() else float("nan"),
-        "pick_is_closest_by_chance": float(sum(
-            (closest[picked] == s).float().mean() * (chosen[picked] == s).float().mean() for s in range(num_scales)
-        )) if picked.any() else float("nan"),
-        "median_relative_error_pseudo": float(pseudo[picked].median()) if picked.any() else float("nan"),
-        "median_relative_error_full_same_rays": float(relative[0][picked].median()) if picked.any() else float("nan"),
-        "pseudo_closer_than_full": float((pseudo[picked] < relative[0][picked]).float().mean()) if picked.any() else float("nan"),
-    }
 
 
 def main(argv=None) -> None:
@@ -73,9 +33,11 @@ def main(argv=None) -> None:
     from nerfstudio.utils.eval_utils import eval_setup
 
     from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
+    from frugalnerf_ns.data.colmap_points import read_points3d_bin
     from frugalnerf_ns.data.dataparsers.llff import load_poses_bounds
     from frugalnerf_ns.model.geometric_adaptation import pseudo_ground_truth_scale
     from frugalnerf_ns.geometry.reprojection import project_to_camera
+    from frugalnerf_ns.scoring.pseudo_depth import summarise
 
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
     model = pipeline.model

@@ -7,7 +7,7 @@ every plane). A FrugalNeRF row with one scale (L = 0) shows what the two lower s
 
 Each method runs in its own subprocess so that peak memory is its own. Prints a table and writes JSON.
 
-Usage: python scripts/benchmark_vs_tensorf.py [--iterations 300] [--resolution 64] [--rays 1024]
+Usage: frugalnerf-bench vs-tensorf [--iterations 300] [--resolution 64] [--rays 1024]
        [--scene DIR] [--output outputs/benchmark/benchmark_vs_tensorf.json]
 The target (issue 2): FrugalNeRF's s/iter at most 1.5x tensorf's.
 """
@@ -21,7 +21,10 @@ import statistics
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Optional
+
+from frugalnerf_ns.bench.cli import worker_command
+from frugalnerf_ns.bench.report import markdown_table, write_report
 
 METHODS = ("frugalnerf", "frugalnerf-L0", "tensorf")
 TARGET_RATIO = 1.5
@@ -124,22 +127,22 @@ def run_worker(method: str, args: argparse.Namespace) -> Dict[str, Any]:
 
 
 # ---- driver -------------------------------------------------------------------------------------------------
-def print_table(results: List[Dict[str, Any]]) -> None:
+def table(results: List[Dict[str, Any]]) -> str:
     cuda = any("peak_cuda_mib" in r for r in results)
-    mem_head = "peak CUDA MiB" if cuda else "peak RSS MiB (growth)"
-    header = f"| method | params | s/iter (median) | train s | {mem_head} | PSNR | SSIM | LPIPS |"
-    print(header)
-    print("|" + "---|" * (header.count("|") - 1))
-    for r in results:
-        mem = f"{r['peak_cuda_mib']:.0f}" if cuda else f"{r['peak_rss_mib']:.0f} ({r['rss_growth_mib']:+.0f})"
-        print(
-            f"| {r['method']} | {r['parameters'] / 1e6:.2f}M | {r['s_per_iter_median']:.4f} | {r['train_seconds']:.1f} "
-            f"| {mem} | {r['psnr']:.2f} | {r['ssim']:.3f} | {r['lpips']:.3f} |"
-        )
+
+    def memory(r: Dict[str, Any]) -> str:
+        return f"{r['peak_cuda_mib']:.0f}" if cuda else f"{r['peak_rss_mib']:.0f} ({r['rss_growth_mib']:+.0f})"
+
+    return markdown_table(results, [
+        ("method", lambda r: r["method"]), ("params", lambda r: f"{r['parameters'] / 1e6:.2f}M"),
+        ("s/iter (median)", lambda r: f"{r['s_per_iter_median']:.4f}"), ("train s", lambda r: f"{r['train_seconds']:.1f}"),
+        ("peak CUDA MiB" if cuda else "peak RSS MiB (growth)", memory), ("PSNR", lambda r: f"{r['psnr']:.2f}"),
+        ("SSIM", lambda r: f"{r['ssim']:.3f}"), ("LPIPS", lambda r: f"{r['lpips']:.3f}"),
+    ])
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: Optional[List[str]] = None) -> None:
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench vs-tensorf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", type=Path, default=Path("outputs/benchmark/scene"), help="nerfstudio scene (written if missing)")
     parser.add_argument("--iterations", type=int, default=300)
     parser.add_argument("--resolution", type=int, default=64, help="full-resolution grid per axis, both methods")
@@ -147,7 +150,7 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark/benchmark_vs_tensorf.json"))
     parser.add_argument("--worker", choices=METHODS, help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
 
     if args.worker:
         print("RESULT " + json.dumps(run_worker(args.worker, args)))
@@ -160,27 +163,20 @@ def main() -> None:
     results = []
     for method in args.methods:
         print(f"benchmark: training {method} ({args.iterations} iterations, {args.resolution}^3 grid, {args.rays} rays)")
-        cmd = [sys.executable, __file__, "--worker", method, "--scene", str(args.scene), "--iterations",
-               str(args.iterations), "--resolution", str(args.resolution), "--rays", str(args.rays)]
+        cmd = worker_command("vs-tensorf", "--worker", method, "--scene", str(args.scene), "--iterations",
+                             str(args.iterations), "--resolution", str(args.resolution), "--rays", str(args.rays))
         proc = subprocess.run(cmd, capture_output=True, text=True)
         lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
         if proc.returncode != 0 or not lines:
             sys.exit(f"benchmark: {method} failed:\n{proc.stderr[-3000:]}")
         results.append(json.loads(lines[-1][len("RESULT "):]))
 
-    print()
-    print_table(results)
     by_name = {r["method"]: r for r in results}
     summary: Dict[str, Any] = {"results": results}
+    text = table(results)
     if "frugalnerf" in by_name and "tensorf" in by_name:
         ratio = by_name["frugalnerf"]["s_per_iter_median"] / by_name["tensorf"]["s_per_iter_median"]
         summary["frugalnerf_over_tensorf_time_ratio"] = ratio
         verdict = "meets" if ratio <= TARGET_RATIO else "MISSES"
-        print(f"\nfrugalnerf / tensorf time per iteration: {ratio:.2f}x ({verdict} the <= {TARGET_RATIO}x target)")
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(summary, indent=2))
-    print(f"wrote {args.output}")
-
-
-if __name__ == "__main__":
-    main()
+        text += f"\n\nfrugalnerf / tensorf time per iteration: {ratio:.2f}x ({verdict} the <= {TARGET_RATIO}x target)"
+    write_report("vs_tensorf", text, summary, args.output)

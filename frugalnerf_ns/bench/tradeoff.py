@@ -1,9 +1,9 @@
 """Speed vs accuracy on one scene and split: presets x iteration budgets, the number of scales, and tensorf.
 
-  python scripts/tradeoff.py --scene fern [--presets frugalnerf-cpu] [--budgets 500 1500]
+  frugalnerf-bench tradeoff --scene fern [--presets frugalnerf-cpu] [--budgets 500 1500]
          [--scales 0 1 2 3] [--scales-budget 500] [--grid-sides auto 320] [--anytime-every 500]
          [--tensorf-iterations 1500] [--seed N] [--out outputs/tradeoff]
-  python scripts/tradeoff.py --data <scene dir> --parser "frugal-nerfstudio --center-method focus" ...
+  frugalnerf-bench tradeoff --data <scene dir> --parser "frugal-nerfstudio --center-method focus" ...
 
 Every FrugalNeRF run scales its preset's step schedule (upsampling, alpha mask, learning-rate decay) to its
 budget and saves a checkpoint every ``--anytime-every`` steps; each checkpoint is scored on the test views
@@ -20,7 +20,6 @@ tensorf (nerfstudio's) runs on the same views as the reference. Writes ``tradeof
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import List, Optional, Sequence
 
 import yaml
 
+from frugalnerf_ns.bench.report import write_report
 from frugalnerf_ns.tools.sweep.cli import run_sweep
 from frugalnerf_ns.tools.sweep.grid import ROOT, RunSpec, scene_data, scene_parser, seed_args
 from frugalnerf_ns.tools.sweep.report import anytime_rows, anytime_table, pareto_front, plot  # noqa: F401 (pareto_front: tests)
@@ -50,7 +50,7 @@ def spec(label: str, method: str, scene: str, views: int, data: Path, parser_arg
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench tradeoff", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", help="scene name from --config (gives data, parser options and preset)")
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "benchmark_scenes.yaml")
     parser.add_argument("--views", type=int, default=2, help="training views of --scene (a count its config defines)")
@@ -126,13 +126,6 @@ def main(argv=None) -> None:
     if failed:
         sys.exit("tradeoff: " + "; ".join(f"{r['extra']['run']} failed ({r.get('error')}; log {r.get('log')})" for r in failed))
     rows = anytime_rows(records)
-    table = markdown(rows)
-    print(table)
-    (args.out / "tradeoff.md").write_text(table + "\n")
-    (args.out / "tradeoff.json").write_text(json.dumps(rows, indent=2))
+    write_report("tradeoff", markdown(rows), rows, args.out / "tradeoff.json", args.out / "tradeoff.md")
     plot(rows, args.out)
-    print(f"tradeoff: wrote {args.out / 'tradeoff.md'}, tradeoff.json, pareto.png and anytime.png")
-
-
-if __name__ == "__main__":
-    main()
+    print(f"tradeoff: drew {args.out / 'pareto.png'} and anytime.png")

@@ -1,6 +1,6 @@
 """Sparse points of the benchmark scenes' training views: count and time per scene (table + JSON).
 
-  python scripts/triangulate_scenes.py [--out outputs/triangulation.json]
+  python scripts/diagnostics/triangulate_scenes.py [--out outputs/triangulation.json]
 
 Runs exactly what training does (``sparse_points.triangulate_training_views`` with the default options, the
 LLFF near/far bounds, and for metric scenes the scene box), without the cache.
@@ -21,7 +21,7 @@ from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
 from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 from frugalnerf_ns.data.sparse_points import points_inside_box, triangulate_training_views
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCENES = {
     "fern": LLFFDataParserConfig(data=ROOT / "../shared/data/llff/fern", downscale_factor=8, train_views=(6, 13)),
     "dtu_scan65": DTUDataParserConfig(data=ROOT / "../shared/data/dtu/scan65", train_views=(22, 25)),

@@ -1,6 +1,6 @@
 """Run the reliability trials of a new user's bad input and interrupted runs; print a table, write JSON.
 
-  python scripts/bad_input_trials.py [--out outputs/bad_input_trials]
+  python scripts/diagnostics/bad_input_trials.py [--out outputs/bad_input_trials]
 
 Each trial is a real command (ns-train, ns-eval, ns-render, or python importing the plugin) on a small
 fixture this script writes (the procedural scene and variants of it, a short trained run, copies of its

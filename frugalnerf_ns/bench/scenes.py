@@ -7,7 +7,7 @@ SSIM / LPIPS / training time / checkpoint size / peak memory, side by side. Fini
 ``<out>/results.jsonl``: the same command again skips them (and retries failed ones once).
 
 Usage:
-  python scripts/benchmark_scenes.py [--config configs/benchmark_scenes.yaml] [--scenes fern dtu_scan65]
+  frugalnerf-bench scenes [--config configs/benchmark_scenes.yaml] [--scenes fern dtu_scan65]
          [--views 2 3] [--baselines tensorf nerfacto] [--variants no-geo no-novel single-scale]
          [--preset frugalnerf-cpu] [--only-baselines] [--max-iterations N] [--seeds 42 43] [--out outputs/benchmark]
          [--data-root DIR]
@@ -21,13 +21,13 @@ a mean row with the spread (max - min) per scene and method.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import List, Optional
 
 import yaml
 
+from frugalnerf_ns.bench.report import write_report
 from frugalnerf_ns.tools.sweep.cli import run_sweep
 from frugalnerf_ns.tools.sweep.grid import ROOT, SCENE_PRESET, GridError, expand, scene_data
 from frugalnerf_ns.tools.sweep.report import scene_table
@@ -36,7 +36,7 @@ markdown = scene_table  # the table this script has always written
 
 
 def main(argv: Optional[List[str]] = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench scenes", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=ROOT / "configs" / "benchmark_scenes.yaml")
     parser.add_argument("--scenes", nargs="*", help="scene names from the config (default: all)")
     parser.add_argument("--views", type=int, nargs="*", default=[2], help="training view counts (default 2)")
@@ -71,16 +71,7 @@ def main(argv: Optional[List[str]] = None) -> None:
         sys.exit(f"benchmark: {err}")
     records = [r for r in run_sweep(specs, args.out) if r.get("status") == "ok"]
 
-    table = markdown(records)
-    print()
-    print(table)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "benchmark_scenes.json").write_text(json.dumps(records, indent=2, default=str))
-    (args.out / "benchmark_scenes.md").write_text(table + "\n")
-    print(f"\nwrote {args.out / 'benchmark_scenes.md'} and {args.out / 'benchmark_scenes.json'}")
+    write_report("benchmark", markdown(records), records, args.out / "benchmark_scenes.json",
+                 args.out / "benchmark_scenes.md")
     if len(records) < len(specs):
         sys.exit(f"benchmark: {len(specs) - len(records)} runs failed (their logs are in {args.out / 'logs'})")
-
-
-if __name__ == "__main__":
-    main()

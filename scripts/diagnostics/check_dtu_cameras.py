@@ -1,6 +1,6 @@
 """Check a DTU (IDR/NeuS) scene's camera conversion against the images themselves.
 
-  python scripts/check_dtu_cameras.py [--data ../shared/data/dtu/scan65] [--views 22 25]
+  python scripts/diagnostics/check_dtu_cameras.py [--data ../shared/data/dtu/scan65] [--views 22 25]
 
 SIFT matches between two training views (pycolmap, no geometric verification) must lie on the epipolar
 lines our converted cameras predict: a wrong axis convention, principal point or intrinsics scale moves
@@ -16,22 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def fundamental_from_projections(p1: torch.Tensor, p2: torch.Tensor, center1: torch.Tensor) -> torch.Tensor:
-    """F = [e2]_x P2 P1^+ (Hartley & Zisserman, eq. 9.1), e2 = P2 C1: x2^T F x1 = 0 for matching pixels."""
-    e2 = p2 @ torch.cat([center1, torch.ones(1, dtype=p2.dtype)])
-    cross = torch.tensor([[0, -e2[2], e2[1]], [e2[2], 0, -e2[0]], [-e2[1], e2[0], 0]], dtype=p2.dtype)
-    return cross @ p2 @ torch.linalg.pinv(p1)
-
-
-def epipolar_distances(f: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor) -> torch.Tensor:
-    """Distance in pixels of each x2 from the epipolar line F x1."""
-    h1 = torch.cat([x1, torch.ones(len(x1), 1, dtype=x1.dtype)], 1)
-    h2 = torch.cat([x2, torch.ones(len(x2), 1, dtype=x2.dtype)], 1)
-    lines = h1 @ f.T
-    return (h2 * lines).sum(-1).abs() / lines[:, :2].norm(dim=-1)
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def main(argv=None) -> None:
@@ -53,6 +38,7 @@ def main(argv=None) -> None:
         opencv_projection_matrices,
         triangulate_tracks,
     )
+    from frugalnerf_ns.geometry.epipolar import epipolar_distances, fundamental_from_projections
 
     outputs = DTUDataParserConfig(data=args.data, train_views=tuple(args.views)).setup().get_dataparser_outputs("train")
     cameras = outputs.cameras

@@ -1,6 +1,6 @@
 """Model size on disk and peak memory of one training step, per preset, at each preset's final grid.
 
-  python scripts/model_size.py --data ../shared/data/llff/fern --parser "frugal-llff --downscale-factor 8 --train-views 6 13"
+  frugalnerf-bench model-size --data ../shared/data/llff/fern --parser "frugal-llff --downscale-factor 8 --train-views 6 13"
          [--presets frugalnerf frugalnerf-fast frugalnerf-quality frugalnerf-cpu frugalnerf-tiny] [--auto-grid]
          [--out outputs/model_size.json]
 
@@ -24,32 +24,31 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List
 
+from frugalnerf_ns.bench.cli import worker_command
+from frugalnerf_ns.bench.report import markdown_table, write_report
+
+COLUMNS = [
+    ("preset", lambda r: r["preset"]),
+    ("final grid", lambda r: r["grid"]),
+    ("field parameters", lambda r: f"{r['parameters'] / 1e6:.1f} M"),
+    ("field MB", lambda r: f"{r['field_mb']:.1f}"),
+    ("checkpoint MB", lambda r: f"{r['checkpoint_mb']:.1f}"),
+    ("first step (s)", lambda r: f"{r['step_seconds']:.2f}"),
+    ("rays/step", lambda r: r["rays"]),
+    ("peak RSS MiB", lambda r: f"{r['peak_rss_mib']:.0f}"),
+]
+
 
 def measure(preset: str, data: Path, parser_args: List[str], auto_grid: bool) -> Dict[str, Any]:
     import torch
-    import tyro
 
-    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
-    from frugalnerf_ns.run.presets import build_trainer_config
+    from frugalnerf_ns.bench.pipelines import preset_pipeline
 
-    config = build_trainer_config(preset)
-    config.pipeline.model.auto_grid = auto_grid
-    config.machine.device_type = "cpu"
-    # The dataparser from the same subcommand syntax ns-train takes (e.g. "frugal-llff --train-views 6 13").
-    if parser_args:
-        from nerfstudio.configs.dataparser_configs import all_dataparsers
+    def grid(config) -> None:
+        config.pipeline.model.auto_grid = auto_grid
 
-        name, rest = parser_args[0], parser_args[1:]
-        if name not in all_dataparsers:
-            sys.exit(f"model_size: unknown dataparser {name!r}")
-        default = all_dataparsers[name]
-        config.pipeline.datamanager.dataparser = tyro.cli(type(default), args=rest, default=default)
-    config.pipeline.datamanager.data = data
-    config.pipeline.datamanager.dataparser.data = data
-    pipeline = config.pipeline.setup(device="cpu", test_mode="val")
+    _, pipeline = preset_pipeline(preset, data, parser_args=parser_args, configure=grid)
     model = pipeline.model
-    box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
-    model.field.upsample(resolution_for_voxels(model.final_voxels, box))
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "step.ckpt"
         torch.save({"step": 0, "pipeline": pipeline.state_dict()}, path)
@@ -80,7 +79,7 @@ def measure(preset: str, data: Path, parser_args: List[str], auto_grid: bool) ->
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench model-size", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--parser", default="", help='dataparser subcommand and options, one string')
     parser.add_argument("--presets", nargs="+",
@@ -99,8 +98,8 @@ def main(argv=None) -> None:
     for preset in args.presets:
         for auto in ([False, True] if args.auto_grid else [False]):
             proc = subprocess.run(
-                [sys.executable, __file__, "--data", str(args.data), "--parser", args.parser, "--worker", preset,
-                 "1" if auto else "0"],
+                worker_command("model-size", "--data", str(args.data), "--parser", args.parser, "--worker", preset,
+                               "1" if auto else "0"),
                 capture_output=True, text=True,
             )
             lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
@@ -108,15 +107,4 @@ def main(argv=None) -> None:
                 sys.exit(f"model_size: {preset} failed:\n{proc.stderr[-3000:]}")
             rows.append(json.loads(lines[-1][len("RESULT "):]))
             print(f"model_size: {rows[-1]['preset']} measured", flush=True)
-    print("| preset | final grid | field parameters | field MB | checkpoint MB | first step (s) | rays/step | peak RSS MiB |")
-    print("|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['preset']} | {r['grid']} | {r['parameters'] / 1e6:.1f} M | {r['field_mb']:.1f} | {r['checkpoint_mb']:.1f} | "
-              f"{r['step_seconds']:.2f} | {r['rays']} | {r['peak_rss_mib']:.0f} |")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(rows, indent=2))
-    print(f"wrote {args.out}")
-
-
-if __name__ == "__main__":
-    main()
+    write_report("model_size", markdown_table(rows, COLUMNS), rows, args.out)

@@ -1,0 +1,70 @@
+"""``frugalnerf-bench``: the installed command lists and dispatches its subcommands, the shared table-and-JSON
+writer writes what it prints, and the shared pipeline builder sets a preset up at its final grid."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from frugalnerf_ns.bench import cli
+from frugalnerf_ns.bench.report import markdown_table, write_report
+
+BENCH = str(Path(sys.executable).parent / "frugalnerf-bench")  # the console script pyproject.toml installs
+
+
+def test_installed_command_lists_every_subcommand_and_refuses_an_unknown_one():
+    listed = subprocess.run([BENCH], capture_output=True, text=True)
+    assert listed.returncode == 0
+    names = [line.split()[0] for line in listed.stdout.splitlines() if line.startswith("  ")]
+    assert names == list(cli.SUBCOMMANDS) == ["scenes", "tradeoff", "vs-tensorf", "render", "viewer", "startup",
+                                              "model-size", "profile", "gpu-check"]
+    unknown = subprocess.run([BENCH, "bogus"], capture_output=True, text=True)
+    assert unknown.returncode == 2 and unknown.stdout == ""
+    assert unknown.stderr.strip().splitlines() == [
+        "frugalnerf-bench: unknown subcommand 'bogus'; choose one of " + ", ".join(cli.SUBCOMMANDS)]
+
+
+@pytest.mark.parametrize("name", list(cli.SUBCOMMANDS))
+def test_every_subcommand_answers_help_under_its_own_name(name, capsys):
+    with pytest.raises(SystemExit) as done:
+        cli.main([name, "--help"])
+    assert done.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: frugalnerf-bench {name} ")
+
+
+def test_table_and_json_writer(tmp_path, capsys):
+    rows = [{"scene": "fern", "psnr": 17.9812}, {"scene": "horns", "psnr": 17.0}]
+    table = markdown_table(rows, [("scene", lambda r: r["scene"]), ("PSNR", lambda r: f"{r['psnr']:.2f}")])
+    assert table.splitlines() == ["| scene | PSNR |", "|---|---|", "| fern | 17.98 |", "| horns | 17.00 |"]
+    written = write_report("demo", table, {"rows": rows, "where": tmp_path}, tmp_path / "a" / "out.json",
+                           tmp_path / "b" / "out.md")
+    assert written == [tmp_path / "a" / "out.json", tmp_path / "b" / "out.md"]
+    assert json.loads(written[0].read_text()) == {"rows": rows, "where": str(tmp_path)}  # paths as text
+    assert written[1].read_text() == table + "\n"
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert printed[:4] == table.splitlines() and printed[-1] == f"demo: wrote {written[0]} and {written[1]}"
+
+
+def test_preset_pipeline_is_set_up_at_its_final_grid(procedural_scene):
+    from frugalnerf_ns.bench.pipelines import preset_pipeline
+    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
+
+    def fewer_voxels(config) -> None:
+        config.pipeline.model.final_voxels = 20**3
+
+    config, pipeline = preset_pipeline("frugalnerf-tiny", procedural_scene, configure=fewer_voxels,
+                                       parser_args=["frugal-nerfstudio", "--center-method", "focus"])
+    model = pipeline.model
+    box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
+    assert config.pipeline.model.final_voxels == 20**3 and config.pipeline.datamanager.dataparser.center_method == "focus"
+    assert model.field.density_grid.resolution.tolist() == list(resolution_for_voxels(20**3, box))
+    assert list(resolution_for_voxels(config.pipeline.model.initial_voxels, box)) != list(resolution_for_voxels(20**3, box))
+    with pytest.raises(SystemExit) as bad:
+        preset_pipeline("frugalnerf-tiny", procedural_scene, parser_args=["frugal-nope"])
+    assert str(bad.value.code).startswith("frugalnerf-bench: unknown dataparser 'frugal-nope'")
+
+
