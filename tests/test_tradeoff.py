@@ -32,19 +32,45 @@ def test_pareto_front_keeps_only_undominated_runs():
     assert [p["run"] for p in tradeoff.pareto_front(points, "lpips", False)] == ["a", "b"]
 
 
+def test_the_plan_has_every_budget_each_lower_scale_count_each_grid_and_tensorf(tmp_path):
+    args = tradeoff.build_parser().parse_args(
+        ["--presets", "frugalnerf-tiny", "--budgets", "20", "40", "--scales", "0", "2", "--scales-budget", "20",
+         "--grid-sides", "24", "auto", "--seed", "3", "--anytime-every", "10", "--tensorf-iterations", "10"])
+    runs = tradeoff.plan_runs(args, "proc", 0, tmp_path, ["frugal-nerfstudio"], ["nerfstudio-data"], ["frugalnerf-tiny"])
+    by_label = {run.extra["run"]: run for run in runs}
+    # frugalnerf-tiny has L = 2 of its own: that run at the L-sweep's budget is the preset's own 20-step run.
+    assert list(by_label) == ["frugalnerf-tiny/20", "frugalnerf-tiny/40", "frugalnerf-tiny/20/L=0",
+                              "frugalnerf-tiny/20/grid=24", "frugalnerf-tiny/20/grid=auto", "tensorf/10"]
+
+    def option(run, name):
+        return run.train_args[run.train_args.index(name) + 1]
+
+    assert option(by_label["frugalnerf-tiny/40"], "--max-num-iterations") == "40"
+    assert option(by_label["frugalnerf-tiny/40"], "--steps-per-save") == "10"  # scored every 10 steps
+    assert option(by_label["frugalnerf-tiny/20/L=0"], "--pipeline.model.num-lower-scales") == "0"
+    grid = by_label["frugalnerf-tiny/20/grid=24"]
+    # 24^3 is below the preset's 30^3 start: the run starts at its final size (the grid never shrinks).
+    assert option(grid, "--pipeline.model.final-voxels") == str(24**3) == option(grid, "--pipeline.model.initial-voxels")
+    assert option(by_label["frugalnerf-tiny/20/grid=auto"], "--pipeline.model.auto-grid") == "True"
+    reference = by_label["tensorf/10"]
+    assert reference.method == "tensorf" and reference.parser_args == ["nerfstudio-data"]
+    assert option(reference, "--pipeline.datamanager.train-num-rays-per-batch") == "1024"
+    assert all(option(run, "--machine.seed") == "3" for run in runs)
+
+
 @pytest.mark.e2e
 def test_tradeoff_script_end_to_end_on_the_procedural_scene(procedural_scene, tmp_path):
     out = tmp_path / "tradeoff"
     result = subprocess.run(
         [BENCH, "tradeoff", "--data", str(procedural_scene), "--parser", "frugal-nerfstudio --center-method focus",
-         "--presets", "frugalnerf-tiny", "--budgets", "20", "--scales", "0", "--scales-budget", "20",
-         "--grid-sides", "24", "--seed", "3", "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
+         "--presets", "frugalnerf-tiny", "--budgets", "20", "--scales", "--grid-sides", "24", "--scales-budget", "20",
+         "--seed", "3", "--anytime-every", "10", "--tensorf-iterations", "10", "--out", str(out)],
         capture_output=True, text=True, timeout=900,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     rows = json.loads((out / "tradeoff.json").read_text())
     runs = {row["run"] for row in rows}
-    assert runs == {"frugalnerf-tiny/20", "frugalnerf-tiny/20/L=0", "frugalnerf-tiny/20/grid=24", "tensorf/10"}
+    assert runs == {"frugalnerf-tiny/20", "frugalnerf-tiny/20/grid=24", "tensorf/10"}  # the L sweep: test above
     # The grid sweep's run really trained at that grid: its config asks for 24^3 final voxels.
     run_dir = next(row["run_dir"] for row in rows if row["run"] == "frugalnerf-tiny/20/grid=24")
     config = (Path(run_dir) / "config.yml").read_text()

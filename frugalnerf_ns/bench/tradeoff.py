@@ -49,50 +49,10 @@ def spec(label: str, method: str, scene: str, views: int, data: Path, parser_arg
                    extra={"run": label})
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="frugalnerf-bench tradeoff", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", help="scene name from --config (gives data, parser options and preset)")
-    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "benchmark_scenes.yaml")
-    parser.add_argument("--views", type=int, default=2, help="training views of --scene (a count its config defines)")
-    parser.add_argument("--data", type=Path, help="scene folder (instead of --scene)")
-    parser.add_argument("--parser", default="", help='dataparser subcommand and options, one string (with --data), '
-                        'e.g. "frugal-nerfstudio --center-method focus"')
-    parser.add_argument("--baseline-parser", help="dataparser for tensorf, one string (default: --parser)")
-    parser.add_argument("--presets", nargs="+", help="FrugalNeRF presets (default: the scene's)")
-    parser.add_argument("--budgets", type=int, nargs="*", default=[500, 1500], help="iteration budgets")
-    parser.add_argument("--scales", type=int, nargs="*", default=[0, 1, 2, 3], help="numbers of lower scales L")
-    parser.add_argument("--scales-budget", type=int, default=500, help="iterations of the L sweep")
-    parser.add_argument("--grid-sides", nargs="*", default=[],
-                        help="final grid sides for the first preset at --scales-budget: 'auto' or N (N^3 voxels)")
-    parser.add_argument("--anytime-every", type=int, default=500, help="steps between scored checkpoints")
-    parser.add_argument("--tensorf-iterations", type=int, default=1500, help="0 skips the tensorf reference")
-    parser.add_argument("--tensorf-rays", type=int, default=1024)
-    parser.add_argument("--seed", type=int, help="nerfstudio's --machine.seed for every run (default: each method's)")
-    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "tradeoff")
-    args = parser.parse_args(argv)
-
-    if args.scene:
-        table = yaml.safe_load(args.config.read_text())["scenes"]
-        if args.scene not in table:
-            parser.error(f"unknown scene {args.scene!r}; {args.config} has {sorted(table)}")
-        entry = table[args.scene]
-        scene, views = args.scene, args.views
-        config = yaml.safe_load(args.config.read_text())
-        _, parser_args = scene_parser(args.config, config, scene, views, baseline=False)
-        _, baseline_parser = scene_parser(args.config, config, scene, views, baseline=True)
-        data = scene_data(args.config, config, scene)
-        presets = args.presets or [entry["preset"]]
-    elif args.data:
-        scene, views = args.data.name, 0
-        data, parser_args = args.data.resolve(), shlex.split(args.parser)
-        baseline_parser = shlex.split(args.baseline_parser) if args.baseline_parser is not None else parser_args
-        presets = args.presets or ["frugalnerf-tiny"]
-    else:
-        parser.error("give --scene or --data")
-    if not data.exists():
-        parser.error(f"scene data {data} does not exist")
-    args.out.mkdir(parents=True, exist_ok=True)
-
+def plan_runs(args: argparse.Namespace, scene: str, views: int, data: Path, parser_args: Sequence[str],
+              baseline_parser: Sequence[str], presets: Sequence[str]) -> List[RunSpec]:
+    """The runs of one trade-off study: every preset at every budget, the first preset with each number of lower
+    scales and each final grid side at ``--scales-budget``, and tensorf as the reference."""
     runs = []
     for preset in presets:
         for budget in args.budgets:
@@ -121,6 +81,58 @@ def main(argv=None) -> None:
                  str(args.tensorf_rays)]
         runs.append(spec(f"tensorf/{args.tensorf_iterations}", "tensorf", scene, views, data, baseline_parser, extra,
                          min(args.anytime_every, args.tensorf_iterations), args.seed))
+    return runs
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="frugalnerf-bench tradeoff", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", help="scene name from --config (gives data, parser options and preset)")
+    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "benchmark_scenes.yaml")
+    parser.add_argument("--views", type=int, default=2, help="training views of --scene (a count its config defines)")
+    parser.add_argument("--data", type=Path, help="scene folder (instead of --scene)")
+    parser.add_argument("--parser", default="", help='dataparser subcommand and options, one string (with --data), '
+                        'e.g. "frugal-nerfstudio --center-method focus"')
+    parser.add_argument("--baseline-parser", help="dataparser for tensorf, one string (default: --parser)")
+    parser.add_argument("--presets", nargs="+", help="FrugalNeRF presets (default: the scene's)")
+    parser.add_argument("--budgets", type=int, nargs="*", default=[500, 1500], help="iteration budgets")
+    parser.add_argument("--scales", type=int, nargs="*", default=[0, 1, 2, 3], help="numbers of lower scales L")
+    parser.add_argument("--scales-budget", type=int, default=500, help="iterations of the L sweep")
+    parser.add_argument("--grid-sides", nargs="*", default=[],
+                        help="final grid sides for the first preset at --scales-budget: 'auto' or N (N^3 voxels)")
+    parser.add_argument("--anytime-every", type=int, default=500, help="steps between scored checkpoints")
+    parser.add_argument("--tensorf-iterations", type=int, default=1500, help="0 skips the tensorf reference")
+    parser.add_argument("--tensorf-rays", type=int, default=1024)
+    parser.add_argument("--seed", type=int, help="nerfstudio's --machine.seed for every run (default: each method's)")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "tradeoff")
+    return parser
+
+
+def main(argv=None) -> None:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+
+    if args.scene:
+        table = yaml.safe_load(args.config.read_text())["scenes"]
+        if args.scene not in table:
+            parser.error(f"unknown scene {args.scene!r}; {args.config} has {sorted(table)}")
+        entry = table[args.scene]
+        scene, views = args.scene, args.views
+        config = yaml.safe_load(args.config.read_text())
+        _, parser_args = scene_parser(args.config, config, scene, views, baseline=False)
+        _, baseline_parser = scene_parser(args.config, config, scene, views, baseline=True)
+        data = scene_data(args.config, config, scene)
+        presets = args.presets or [entry["preset"]]
+    elif args.data:
+        scene, views = args.data.name, 0
+        data, parser_args = args.data.resolve(), shlex.split(args.parser)
+        baseline_parser = shlex.split(args.baseline_parser) if args.baseline_parser is not None else parser_args
+        presets = args.presets or ["frugalnerf-tiny"]
+    else:
+        parser.error("give --scene or --data")
+    if not data.exists():
+        parser.error(f"scene data {data} does not exist")
+    args.out.mkdir(parents=True, exist_ok=True)
+    runs = plan_runs(args, scene, views, data, parser_args, baseline_parser, presets)
     records = run_sweep(runs, args.out)
     failed = [r for r in records if r.get("status") != "ok"]
     if failed:
