@@ -26,6 +26,7 @@ import torch
 from PIL import Image
 
 from frugalnerf_ns.bench.report import markdown_table, write_report
+from frugalnerf_ns.scoring.metrics import composite
 from frugalnerf_ns.tools.sweep.grid import ROOT
 
 
@@ -34,8 +35,8 @@ def load_training_images(paths) -> List[np.ndarray]:
     images = []
     for path in paths:
         with Image.open(path) as img:
-            pixels = np.asarray(img.convert("RGBA"), dtype=np.float32) / 255.0
-        rgb = pixels[..., :3] * pixels[..., 3:] + (1.0 - pixels[..., 3:])
+            pixels = torch.from_numpy(np.asarray(img.convert("RGBA"), dtype=np.float32) / 255.0)
+        rgb = composite(pixels[..., :3], pixels[..., 3:]).numpy()
         images.append(np.round(rgb * 255.0).astype(np.uint8))
     return images
 
