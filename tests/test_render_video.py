@@ -83,5 +83,8 @@ def test_render_benchmark_times_every_row_on_one_run(trained_run, tmp_path, caps
     out = tmp_path / "render.json"
     render.main([str(run_dir / "config.yml"), "--frames", "2", "--views", "1", "--out", str(out)])
     records = json.loads(out.read_text())
-    assert [r["row"].split(",")[0] for r in records] == ["spiral frame"] * 2 + ["ns-eval per test view"] * 2 + ["offline evaluator per test view"]
-    assert all(r["seconds"] > 0 for r in records) and "| spiral frame, now" in capsys.readouterr().out
+    assert [r["row"].split(",")[0] for r in records] == (
+        ["test view"] * 2 + ["spiral frame", "ns-eval per test view", "offline evaluator per test view"])
+    assert all(r["seconds"] > 0 for r in records) and "| test view, inference marcher (now)" in capsys.readouterr().out
+    # The two marchers render the same test view (the inference one stops rays once opaque: < 1/255 apart).
+    assert records[0]["psnr_inference_vs_training_marcher"] > 50 and records[0]["max_pixel_difference"] < 1 / 255

@@ -84,9 +84,13 @@ def test_viewer_serves_the_page_and_renders_a_frame_for_a_websocket_client(train
         assert b"<html" in page.lower() or b"<!doctype html" in page.lower()
         frame, options, checkboxes = asyncio.run(receive_frame(port))
         assert frame[:3] == JPEG or frame[:4] == PNG
-        # The render dropdown offers every scale's rgb and depth and the pseudo-GT scale map.
-        for name in ("rgb", "depth", "rgb_scale1", "depth_scale1", "rgb_scale2", "depth_scale2", "pseudo_gt_scale"):
-            assert name in options, options
+        # The render dropdown offers what the panel's checkboxes ask for: on a CPU they start off (the full
+        # scale only, the fast frame), with CUDA on (every scale's rgb and depth and the pseudo-GT scale map).
+        import torch
+
+        lower = ("rgb_scale1", "depth_scale1", "rgb_scale2", "depth_scale2", "pseudo_gt_scale")
+        assert {"rgb", "depth"} <= set(options), options
+        assert all((name in options) is torch.cuda.is_available() for name in lower), options
         assert {"Render lower scales", "Pseudo-GT scale map"} <= set(checkboxes)
         # A real render of the scene, not a blank frame.
         import io
@@ -149,6 +153,8 @@ def test_viewer_outputs_offer_every_scale_and_the_pseudo_gt_scale_map(trained_ru
     _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")  # what ns-viewer loads
     model = pipeline.model
     assert model.reference_views is not None
+    # The panel's checkboxes start on only where CUDA is (on a CPU the lower scales cost most of a frame).
+    assert model.viewer_lower_scales.value is model.viewer_scale_map.value is torch.cuda.is_available()
     with torch.no_grad():  # without a viewer attached (ns-eval) the map is not rendered
         assert "pseudo_gt_scale" not in model.get_outputs_for_camera(pipeline.datamanager.eval_dataset.cameras[0:1])
     model.render_scale_map = True

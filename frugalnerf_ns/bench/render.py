@@ -1,14 +1,15 @@
-"""Render time of a trained FrugalNeRF run before and after issue 23, side by side in one process.
+"""Render time of a trained FrugalNeRF run, the training marcher beside the inference marcher, in one process.
 
   frugalnerf-bench render <run>/config.yml [--frames 4] [--views 3] [--out outputs/benchmark_render.json]
 
-Rows (seconds per frame or per test view, same machine, same model, same image size):
-- spiral frame, before: nerfstudio's ``get_spiral_path`` from the first test camera, every scale rendered
-  (what ``ns-render spiral`` did: outside the viewer the model rendered all scales);
-- spiral frame, now: the scene's path (``video.scene_video_cameras``), full scale only (the default);
-- ns-eval per view, before / now: nerfstudio's ``get_average_eval_image_metrics`` (what ``ns-eval`` runs) with
-  every scale, then with the default (full scale only);
-- offline evaluator per view: ``offline_tools.score_test_view``, what ``offline_tools eval`` runs per view.
+Rows (seconds per frame or per test view, same machine, same model, same image size, full scale):
+- test view, training marcher (before issue 31): ``render_scale``, every sample slot of every ray
+  (``--pipeline.model.fast-inference False``);
+- test view, inference marcher (now): ``render_scale_inference``, blocks of slots, rays dropped once they
+  leave the box or turn opaque; with the PSNR and largest pixel difference between the two renders;
+- spiral frame, now: the scene's video path (``video.scene_video_cameras``), what ``ns-render spiral`` renders;
+- ns-eval per test view, now: nerfstudio's ``get_average_eval_image_metrics`` calls for a subset of views;
+- offline evaluator per test view: ``offline_tools.score_test_view``, what ``offline_tools eval`` runs per view.
 Prints a Markdown table and writes JSON.
 """
 
@@ -39,7 +40,6 @@ def main(argv=None) -> list:
         sys.exit(f"benchmark_render: error: {args.config} is not a file (pass <run>/config.yml)")
 
     import torch
-    from nerfstudio.cameras.camera_paths import get_spiral_path
     from nerfstudio.utils.eval_utils import eval_setup
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.tools.offline_tools import score_test_view
@@ -48,20 +48,17 @@ def main(argv=None) -> list:
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
     pipeline.eval()
     model, datamanager = pipeline.model, pipeline.datamanager
-    every_scale = model.field.num_scales
     start = datamanager.eval_dataset.cameras[0:1]
     size = f"{int(start.width)}x{int(start.height)}"
     dataset = datamanager.eval_dataset
     views = list(range(min(args.views, len(dataset))))
 
-    def render_path(cameras, scales):
-        model.num_rendered_scales = scales
+    def render_path(cameras):
         with torch.no_grad():
             for i in range(len(cameras)):
                 model.get_outputs_for_camera(cameras[i : i + 1].to(model.device))
 
-    def ns_eval(scales):
-        model.num_rendered_scales = scales
+    def ns_eval():
         # get_average_eval_image_metrics scores the whole eval set; time a subset through the same calls.
         with torch.no_grad():
             for index in views:
@@ -76,20 +73,35 @@ def main(argv=None) -> list:
         for index in views:
             score_test_view(pipeline, dataset, index, lpips)
 
-    theirs = get_spiral_path(start, steps=args.frames, radius=0.1)
+    renders = {}
+
+    def test_views(fast: bool):
+        model.config.fast_inference = fast
+        with torch.no_grad():
+            renders[fast] = [model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))["rgb"]
+                             for i in views]
+
+    model.num_rendered_scales = None  # the default outside the viewer: the full scale only
     ours = scene_video_cameras(datamanager, start, args.frames)
-    ns_eval(None)  # warm-up: LPIPS weights, first-call allocations
+    ns_eval()  # warm-up: LPIPS weights, first-call allocations
     rows = [
-        ("spiral frame, before (nerfstudio path, every scale)", timed(lambda: render_path(theirs, every_scale)) / args.frames),
-        ("spiral frame, now (scene path, full scale)", timed(lambda: render_path(ours, None)) / args.frames),
-        ("ns-eval per test view, before (every scale)", timed(lambda: ns_eval(every_scale)) / len(views)),
-        ("ns-eval per test view, now (full scale)", timed(lambda: ns_eval(None)) / len(views)),
+        ("test view, training marcher (before)", timed(lambda: test_views(False)) / len(views)),
+        ("test view, inference marcher (now)", timed(lambda: test_views(True)) / len(views)),
+        ("spiral frame, now (scene path)", timed(lambda: render_path(ours)) / args.frames),
+        ("ns-eval per test view, now", timed(ns_eval) / len(views)),
         ("offline evaluator per test view", timed(offline) / len(views)),
     ]
+    difference = torch.cat([(a - b).flatten() for a, b in zip(renders[True], renders[False])])
+    agreement = {"psnr_inference_vs_training_marcher": float(-10 * torch.log10((difference**2).mean().clamp_min(1e-20))),
+                 "max_pixel_difference": float(difference.abs().max())}
     model.num_rendered_scales = None
     records = [{"run": str(args.config.parent), "row": name, "seconds": seconds, "image": size,
-                "threads": torch.get_num_threads(), "device": str(pipeline.device)} for name, seconds in rows]
+                "threads": torch.get_num_threads(), "device": str(pipeline.device), **agreement}
+               for name, seconds in rows]
     heading = f"{args.config.parent} ({size}, {torch.get_num_threads()} threads)"
     table = markdown_table(records, [(heading, lambda r: r["row"]), ("seconds", lambda r: f"{r['seconds']:.2f}")])
+    table += (f"\n\ninference vs training marcher on {len(views)} test views: PSNR "
+              f"{agreement['psnr_inference_vs_training_marcher']:.1f} dB, largest pixel difference "
+              f"{agreement['max_pixel_difference']:.2e}")
     write_report("benchmark_render", table, records, args.out)
     return records

@@ -68,6 +68,9 @@ class FrugalNeRFSettings(ModelConfig):
     """relu for forward-facing scenes, softplus (shifted by -10) for object scenes."""
     weight_threshold: float = 1e-4
     """Colour is evaluated only at samples whose compositing weight exceeds this."""
+    fast_inference: bool = True
+    """Outside training, without gradients, march in blocks and stop each ray once its transmittance is below
+    1e-4 (model/rendering.py, ``render_scale_inference``); False renders with the training marcher."""
     mlp_hidden_dim: int = 128
     """Width of the colour MLP."""
     feature_pe: int = 0

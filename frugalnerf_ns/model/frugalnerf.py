@@ -40,7 +40,7 @@ from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.model.objective import ReferenceViews
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
-from frugalnerf_ns.model.rendering import StepRender, render_scale, scale_suffix
+from frugalnerf_ns.model.rendering import StepRender, render_scale, render_scale_inference, scale_suffix
 from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.model.training_schedule import training_callbacks
 
@@ -104,16 +104,18 @@ class FrugalNeRFModel(Model):
         # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
         # scale map outside it (set_reference_views).
         self.reference_views: Optional[ReferenceViews] = None
-        # Viewer panel ("Custom Elements"): the lower scales cost most of a frame's render time on a CPU.
+        # Viewer panel ("Custom Elements"): the lower scales (and the scale map, which needs them) cost most of
+        # a frame's render time on a CPU, so there they start off; on a GPU they start on.
+        on_gpu = torch.cuda.is_available()
         self.viewer_lower_scales = ViewerCheckbox(
-            "Render lower scales", True, hint="Render every scale (rgb/depth per scale, pseudo-GT scale map); "
-            "off renders only the full scale, faster on a CPU."
+            "Render lower scales", on_gpu, hint="Render every scale (rgb/depth per scale, pseudo-GT scale map); "
+            "off renders only the full scale, faster on a CPU (off by default there)."
         )
         # None: the map is rendered only for a viewer (checkbox on); True/False force it (tests, benchmarks).
         # ns-eval and evaluation during training never show it, so they do not pay for it.
         self.render_scale_map: Optional[bool] = None
         self.viewer_scale_map = ViewerCheckbox(
-            "Pseudo-GT scale map", True, hint="Output pseudo_gt_scale: which scale's depth the geometric "
+            "Pseudo-GT scale map", on_gpu, hint="Output pseudo_gt_scale: which scale's depth the geometric "
             "adaptation would take (red full, blue 1, green 2, grey left out)."
         )
 
@@ -183,12 +185,14 @@ class FrugalNeRFModel(Model):
         cfg = self.config
         renders, metric_depths = [], []
         outputs: Dict[str, Union[Tensor, StepRender]] = {}
+        # Without gradients outside training (ns-eval, ns-render, the viewer) only pixels are wanted: the
+        # blocked marcher with early termination renders them; training keeps every sample for its losses.
+        inference = not self.training and not torch.is_grad_enabled() and self.config.fast_inference
         for scale in range(self._scales_to_render()):
             with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
-                render = render_scale(
-                    self.field, origins, directions, scale, background, segments, cfg.step_ratio, cfg.distance_scale,
-                    cfg.max_samples_per_ray, cfg.weight_threshold, jitter=self.training,
-                )
+                args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
+                        cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
+                render = render_scale_inference(*args) if inference else render_scale(*args, jitter=self.training)
             depth = render.depth[:, 0]
             if ndc_rays is not None:
                 # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).

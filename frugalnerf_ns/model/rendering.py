@@ -1,9 +1,17 @@
 """Rendering the scales of the field along rays: what one scale renders, and what a training step keeps of
-every scale for its losses (``StepRender``)."""
+every scale for its losses (``StepRender``).
+
+Two marchers share one sampling rule (``march_steps``: fixed steps from the ray's entry into the box):
+``render_scale`` keeps every sample slot of every ray (training: the losses read weights, depths and colours
+per sample, and gradients flow); ``render_scale_inference`` (no gradients: ns-eval, ns-render, the viewer)
+walks the slots in blocks, drops a ray once it has left the box or once its transmittance is below
+``TERMINATION_TRANSMITTANCE`` (what is left of it can change a pixel by less than 1/255), and returns only
+the pixel values. ``render_scale`` is its test oracle (tests/test_inference_render.py)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from typing import List, NamedTuple, Optional
 
 import torch
@@ -12,7 +20,13 @@ from torch import Tensor
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import AdaptationResult
-from frugalnerf_ns.geometry.raymarch import RaySegments, composite_rgb, composite_weights, march_steps
+from frugalnerf_ns.geometry.raymarch import (
+    MAX_OPTICAL_DEPTH,
+    RaySegments,
+    composite_rgb,
+    composite_weights,
+    march_steps,
+)
 
 
 def scale_suffix(scale: int) -> str:
@@ -33,6 +47,14 @@ class ScaleRender(NamedTuple):
     """Samples whose colour was evaluated (compositing weight above the threshold)."""
 
 
+def samples_per_ray(field_: FrugalNeRFField, scale: int, step: float, max_samples_per_ray: int) -> int:
+    """Sample slots per ray at a scale: enough to cross the box's diagonal, at most the cap (divided by the
+    scale's stride: the lower scales march with larger steps)."""
+    diagonal = float((field_.aabb[1] - field_.aabb[0]).norm())
+    limit = max(1, max_samples_per_ray // field_.stride(scale))
+    return max(1, min(limit, int(diagonal / step) + 1))
+
+
 def render_scale(
     field_: FrugalNeRFField,
     origins: Float[Tensor, "rays 3"],
@@ -48,9 +70,7 @@ def render_scale(
 ) -> ScaleRender:
     """March one scale: fixed-step samples in the box, density where occupied, colour where it matters."""
     step = field_.sample_step(scale, step_ratio)
-    diagonal = float((field_.aabb[1] - field_.aabb[0]).norm())
-    limit = max(1, max_samples_per_ray // field_.stride(scale))
-    num_samples = max(1, min(limit, int(diagonal / step) + 1))
+    num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
     t, valid = march_steps(segments, step, num_samples, jitter=jitter)
     positions = origins[:, None, :] + directions[:, None, :] * t[..., None]
     valid = valid & field_.inside(positions)
@@ -65,6 +85,85 @@ def render_scale(
         colors[shade] = field_.color(positions[shade], dirs[shade], scale)
     rgb = composite_rgb(comp.weights, colors, background)
     return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade)
+
+
+TERMINATION_TRANSMITTANCE = 1e-4
+"""A ray whose transmittance fell below this is finished: its remaining samples can add at most this much
+to any colour channel (below 1/255) and take it from the background's share."""
+
+
+class PixelRender(NamedTuple):
+    """What a render outside training keeps of a scale: the pixel values."""
+
+    rgb: Float[Tensor, "rays 3"]
+    depth: Float[Tensor, "rays 1"]
+    accumulation: Float[Tensor, "rays 1"]
+
+
+@torch.no_grad()
+def render_scale_inference(
+    field_: FrugalNeRFField,
+    origins: Float[Tensor, "rays 3"],
+    directions: Float[Tensor, "rays 3"],
+    scale: int,
+    background: Float[Tensor, "3"],
+    segments: RaySegments,
+    step_ratio: float,
+    distance_scale: float,
+    max_samples_per_ray: int,
+    weight_threshold: float,
+    block: int = 32,
+    termination: float = TERMINATION_TRANSMITTANCE,
+) -> PixelRender:
+    """``render_scale`` without jitter or gradients, marched ``block`` slots at a time over the rays still
+    alive: the same samples (``march_steps``' rule), the same compositing (``composite_weights``: optical
+    depth capped, exclusive transmittance from summed optical depths), the same colour threshold. A ray leaves
+    the march when its next block starts past its segment's end or its transmittance drops below
+    ``termination`` (0 keeps every ray to its end: the dense result up to float rounding)."""
+    step = field_.sample_step(scale, step_ratio)
+    num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
+    rays = origins.shape[0]
+    compute = torch.promote_types(origins.dtype, torch.float32)
+    t_near, t_far = segments.t_near.to(compute), segments.t_far.to(compute)
+    optical_sum = torch.zeros(rays, device=origins.device, dtype=compute)  # -log transmittance so far
+    accumulation = torch.zeros(rays, device=origins.device, dtype=compute)
+    weighted_t = torch.zeros(rays, device=origins.device, dtype=compute)
+    rgb = torch.zeros(rays, 3, device=origins.device, dtype=compute)
+    alive = torch.nonzero(segments.hit, as_tuple=True)[0]
+    stop_optical = float("inf") if termination <= 0 else -math.log(termination)
+    delta = step * distance_scale
+    for start in range(0, num_samples, block):
+        if alive.numel() == 0:
+            break
+        index = torch.arange(start, min(start + block, num_samples), device=origins.device, dtype=compute)
+        # The same arithmetic as march_steps (offset 0.5 without jitter), so the positions are the oracle's.
+        t = t_near[alive, None] + (index[None, :] + 0.5) * step
+        valid = t < t_far[alive, None]
+        positions = origins[alive, None, :] + directions[alive, None, :] * t[..., None]
+        valid = valid & field_.inside(positions)
+        optical = torch.zeros_like(t)
+        if valid.any():
+            optical[valid] = (field_.density(positions[valid], scale).to(compute) * delta).clamp(0.0, MAX_OPTICAL_DEPTH)
+        before = optical_sum[alive, None] + torch.cumsum(
+            torch.cat([torch.zeros_like(optical[:, :1]), optical[:, :-1]], dim=-1), dim=-1
+        )
+        weights = (1.0 - torch.exp(-optical)) * torch.exp(-before)
+        shade = weights > weight_threshold
+        if shade.any():
+            colors = torch.zeros(*t.shape, 3, device=t.device, dtype=compute)
+            dirs = directions[alive, None, :].expand_as(positions)
+            colors[shade] = field_.color(positions[shade], dirs[shade], scale).to(compute)
+            rgb[alive] += (weights[..., None] * colors).sum(dim=1)
+        accumulation[alive] += weights.sum(dim=-1)
+        weighted_t[alive] += (weights * t).sum(dim=-1)
+        optical_sum[alive] = before[:, -1] + optical[:, -1]
+        next_t = t_near[alive] + (start + block + 0.5) * step
+        alive = alive[(next_t < t_far[alive]) & (optical_sum[alive] < stop_optical)]
+    eps = torch.finfo(compute).eps
+    depth = weighted_t / (accumulation + eps)
+    depth = torch.maximum(torch.minimum(depth, t_far), t_near)
+    rgb = rgb + (1.0 - accumulation[:, None]) * background.to(compute)
+    return PixelRender(rgb, depth[:, None], accumulation[:, None])
 
 
 @dataclass

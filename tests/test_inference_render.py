@@ -1,0 +1,145 @@
+"""The inference marcher (blocks of samples, rays dropped when they leave the box or turn opaque) against the
+training marcher it replaces outside training: same pixels, far fewer density lookups."""
+
+import pytest
+import torch
+
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+from frugalnerf_ns.geometry.raymarch import intersect_aabb
+from frugalnerf_ns.model.rendering import render_scale, render_scale_inference
+from tests.helpers import tiny_model
+
+AABB = torch.tensor([[-1.0, -1.2, -0.8], [1.0, 1.2, 0.8]])
+SETTINGS = dict(step_ratio=0.5, distance_scale=25.0, max_samples_per_ray=1024, weight_threshold=1e-4)
+
+
+def opaque_field(seed: int = 0, mask: bool = False) -> FrugalNeRFField:
+    """A field with a dense slab (rays become opaque half-way) over a thin random haze."""
+    torch.manual_seed(seed)
+    field = FrugalNeRFField(AABB, (24, 28, 20), density_components=(4, 2, 2), appearance_components=(6, 2, 2),
+                            mlp_hidden_dim=16, mlp_implementation="torch")
+    with torch.no_grad():
+        for plane in field.density_grid.planes:
+            plane.uniform_(0.0, 0.3)
+        for line in field.density_grid.lines:
+            line.uniform_(0.0, 0.3)
+            line[:, :, line.shape[2] // 2 : line.shape[2] // 2 + 3, :] += 6.0  # a slab across each axis' middle
+        if mask:
+            # Zero density in one corner so the alpha mask leaves it out, then build the mask.
+            for plane in field.density_grid.planes:
+                plane[:, :, :5, :5] = 0.0
+            field.update_alpha_mask(SETTINGS["step_ratio"], SETTINGS["distance_scale"])
+    return field
+
+
+def rays(count: int = 300, seed: int = 1):
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.rand(count, 3, generator=generator) * 0.6 - 0.3 + torch.tensor([0.0, 0.0, 2.5])
+    directions = torch.randn(count, 3, generator=generator) * 0.35 + torch.tensor([0.0, 0.0, -1.0])
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    directions[:20] = torch.tensor([0.0, 0.0, 1.0])  # pointing away: they miss the box
+    return origins, directions
+
+
+def both(field, scale, termination, background=torch.tensor([1.0, 1.0, 1.0])):
+    origins, directions = rays()
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    with torch.no_grad():
+        dense = render_scale(field, origins, directions, scale, background, segments, **SETTINGS, jitter=False)
+        fast = render_scale_inference(field, origins, directions, scale, background, segments, **SETTINGS,
+                                      termination=termination)
+    return dense, fast
+
+
+@pytest.mark.parametrize("mask", [False, True])
+@pytest.mark.parametrize("scale", [0, 1, 2])
+def test_without_termination_the_blocks_give_the_dense_pixels(scale, mask):
+    dense, fast = both(opaque_field(mask=mask), scale, termination=0.0)
+    assert torch.allclose(fast.rgb, dense.rgb, atol=2e-6)
+    assert torch.allclose(fast.accumulation, dense.accumulation, atol=2e-6)
+    assert torch.allclose(fast.depth, dense.depth, atol=1e-5)
+    assert dense.accumulation.max() > 0.999 and dense.accumulation[:20].abs().max() == 0  # opaque rays and misses
+
+
+@pytest.mark.parametrize("scale", [0, 1, 2])
+def test_early_termination_changes_no_pixel_by_a_level_and_skips_lookups(scale, monkeypatch):
+    field = opaque_field(mask=True)
+    origins, directions = rays()
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    background = torch.tensor([0.2, 0.5, 1.0])
+    looked_up = []
+    density = field.density
+
+    def counting(positions, scale=0):
+        looked_up.append(positions.shape[0])
+        return density(positions, scale)
+
+    monkeypatch.setattr(field, "density", counting)
+    with torch.no_grad():
+        dense = render_scale(field, origins, directions, scale, background, segments, **SETTINGS, jitter=False)
+        dense_lookups = sum(looked_up)
+        looked_up.clear()
+        # Blocks of 8 of the ~70 slots a ray has here (a 24^3 grid); real grids give hundreds of slots per ray.
+        fast = render_scale_inference(field, origins, directions, scale, background, segments, **SETTINGS, block=8)
+    assert (fast.rgb - dense.rgb).abs().max() < 1.0 / 255
+    assert (fast.accumulation - dense.accumulation).abs().max() <= 1.1e-4
+    assert (fast.depth - dense.depth).abs().max() < 1e-3 * float(segments.t_far.max())
+    # The slab makes rays opaque half-way through the box: the samples behind it are never looked up (at
+    # the full scale; the lower scales' few, long steps cross the box in two or three blocks).
+    assert sum(looked_up) <= dense_lookups
+    if scale == 0:
+        assert sum(looked_up) < 0.75 * dense_lookups
+
+
+def test_half_precision_inputs_composite_in_float32():
+    field = opaque_field()
+    origins, directions = rays()
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    fast = render_scale_inference(field, origins.half().float(), directions, 0, torch.ones(3), segments, **SETTINGS)
+    assert fast.rgb.dtype == torch.float32 and torch.isfinite(fast.rgb).all() and torch.isfinite(fast.depth).all()
+
+
+def test_the_model_renders_outside_training_with_the_inference_marcher():
+    model = tiny_model()
+    model.eval()
+    with torch.no_grad():
+        for grid in (model.field.density_grid, model.field.appearance_grid):
+            for tensor in (*grid.planes, *grid.lines):
+                tensor.uniform_(0.0, 1.0)
+    from nerfstudio.cameras.rays import RayBundle
+
+    origins, directions = rays(200)
+    bundle = RayBundle(origins=origins, directions=directions, pixel_area=torch.ones(200, 1))
+    with torch.no_grad():
+        fast = model.get_outputs(bundle)
+        model.config.fast_inference = False
+        dense = model.get_outputs(bundle)
+    assert (fast["rgb"] - dense["rgb"]).abs().max() < 1.0 / 255
+    assert (fast["accumulation"] - dense["accumulation"]).abs().max() <= 1.1e-4
+    assert dense["accumulation"].max() > 0.99  # the test is about rays that do become opaque
+    # With gradients on (nerfstudio's eval loss during training), the model keeps the training marcher.
+    model.config.fast_inference = True
+    with torch.enable_grad():
+        assert model.get_outputs(bundle)["rgb"].requires_grad
+
+
+def test_the_inference_marcher_renders_a_trained_run_as_the_training_marcher_does(trained_run):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, run_dir = trained_run
+    _, pipeline, _, _ = eval_setup(run_dir / "config.yml", test_mode="test")
+    model = pipeline.model
+    model.num_rendered_scales = model.field.num_scales
+    camera = pipeline.datamanager.eval_dataset.cameras[0:1]
+    with torch.no_grad():
+        fast = model.get_outputs_for_camera(camera)
+        model.config.fast_inference = False
+        dense = model.get_outputs_for_camera(camera)
+    for suffix in ("", "_scale1", "_scale2"):
+        difference = fast[f"rgb{suffix}"] - dense[f"rgb{suffix}"]
+        assert -10 * torch.log10((difference**2).mean().clamp_min(1e-20)) > 50, suffix
+        assert difference.abs().max() < 1.0 / 255, suffix
+        assert torch.allclose(fast[f"depth{suffix}"], dense[f"depth{suffix}"], rtol=1e-3), suffix
+    # The procedural object covers part of the view: rays that turn opaque (the ones stopped early) and rays
+    # that cross the box to its end are both in the comparison.
+    assert dense["accumulation"].max() > 0.999 and dense["accumulation"].min() < 0.01
