@@ -105,15 +105,18 @@ def test_rgba_targets_are_composited_on_the_render_background():
     assert torch.allclose(objective.target_rgb(image, torch.ones(3)), torch.tensor([[1.0, 0.5, 0.5]]))
 
 
-@pytest.mark.parametrize("carry", [False, True])
-def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry):
+@pytest.mark.parametrize("carry,spanning", [(False, False), (True, False), (False, True)])
+def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spanning):
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
     from frugalnerf_ns.run.presets import AdamBetasOptimizerConfig
 
-    model = tiny_model(carry_optimizer_state=carry)
+    # Spanning needs a final grid past 2 x 16 + 1 entries to grow at all.
+    model = tiny_model(carry_optimizer_state=carry, scale_spanning_grid=spanning, **({"final_voxels": 40**3} if spanning else {}))
+    coarsest = model.config.downsample_ratio**model.config.num_lower_scales
+    resolutions = [model.field.density_grid.resolution_tuple]
     pipeline = SimpleNamespace(get_param_groups=model.get_param_groups)
     opt_config = {
         name: {"optimizer": AdamBetasOptimizerConfig(lr=0.01), "scheduler": ExponentialDecaySchedulerConfig(max_steps=10)}
@@ -133,6 +136,7 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry):
         optimizers.optimizer_step_all()
         for callback in callbacks:
             callback.run_callback_at_location(step, location=callback.where_to_run[0])
+        resolutions.append(model.field.density_grid.resolution_tuple)
         if step in (2, 4):
             # The optimiser now holds the new tensors (a stale one would skip or break the step).
             held = {id(p) for g in optimizers.optimizers["encodings"].param_groups for p in g["params"]}
@@ -144,6 +148,10 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry):
             assert steps == ({step} if carry else set())
     end = model.field.density_grid.resolution_tuple
     assert math.prod(end) > math.prod(start)
+    # Spanning: at the start, after every upsampling and after the shrink, each lower scale's view ends on the
+    # box's far face (16k+1 entries per axis); otherwise the sizes follow the voxel count alone.
+    aligned = [all((r - 1) % coarsest == 0 for r in res) for res in resolutions]
+    assert all(aligned) if spanning else not all(aligned)
     assert model.field.alpha_mask.numel() > 0
     assert (model.field.aabb[1] - model.field.aabb[0] <= 2.0 + 1e-5).all()
     model.eval()

@@ -158,6 +158,26 @@ def test_voxel_schedule_is_log_linear_and_resolution_follows_the_box():
     assert math.prod(res) == 1000
 
 
+def test_span_stride_gives_lower_scale_views_that_end_on_the_far_face():
+    box = (2.0, 2.2, 1.33)
+    plain = resolution_for_voxels(160**3, box)
+    spanning = resolution_for_voxels(160**3, box, span_stride=16)
+    for r, r16 in zip(plain, spanning):
+        assert (r16 - 1) % 16 == 0 and abs(r16 - r) <= 8
+    # The coarsest view's last entry is the full grid's last entry: it reaches the far face.
+    for r16 in spanning:
+        assert (strided_length(r16, 16) - 1) * 16 == r16 - 1
+    assert any((strided_length(r, 16) - 1) * 16 < r - 1 for r in plain)
+    # A far-face point reads the far entry at every scale.
+    far = torch.ones(1, 3)
+    for stride in (1, 4, 16):
+        assert torch.allclose(
+            torch.stack([coords_for_stride(far[:, i], spanning[i], stride) for i in range(3)]), torch.ones(3, 1)
+        )
+    # Tiny counts keep at least one coarse interval per axis.
+    assert resolution_for_voxels(8, (1.0, 1.0, 1.0), span_stride=16) == (17, 17, 17)
+
+
 def test_sample_step_is_half_a_voxel_and_coarser_by_the_ratio_at_lower_scales():
     field = FrugalNeRFField(AABB, (21, 31, 11), mlp_implementation="torch")
     voxel = 0.1  # box 2 x 3 x 1 with 20 x 30 x 10 intervals

@@ -19,7 +19,6 @@ def preset_pipeline(preset: str, data: Path, *, device: str = "cpu", parser_args
     "6", "13"]``); ``train_views`` sets the preset's own parser's training views; ``configure(config)`` changes
     the trainer config before set-up; ``final_grid`` upsamples the grid to the preset's final voxel count.
     """
-    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
     from frugalnerf_ns.run.presets import build_trainer_config
 
     config = build_trainer_config(preset)
@@ -42,6 +41,5 @@ def preset_pipeline(preset: str, data: Path, *, device: str = "cpu", parser_args
     pipeline = config.pipeline.setup(device=str(device), test_mode="val")
     if final_grid:
         model = pipeline.model
-        box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
-        model.field.upsample(resolution_for_voxels(model.final_voxels, box))
+        model.field.upsample(model.grid_resolution(model.final_voxels))
     return config, pipeline

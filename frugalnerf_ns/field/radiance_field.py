@@ -35,11 +35,19 @@ def log_linear_voxel_counts(initial: int, final: int, num_upsamples: int) -> Lis
     return [int(round(math.exp(log_a + (log_b - log_a) * (i + 1) / num_upsamples))) for i in range(num_upsamples)]
 
 
-def resolution_for_voxels(num_voxels: int, box_size: Sequence[float]) -> Tuple[int, int, int]:
-    """Per-axis resolution with cubic voxels filling a box of ``box_size`` with about ``num_voxels``."""
+def resolution_for_voxels(num_voxels: int, box_size: Sequence[float], span_stride: int = 1) -> Tuple[int, int, int]:
+    """Per-axis resolution with cubic voxels filling a box of ``box_size`` with about ``num_voxels``.
+
+    ``span_stride`` > 1 rounds each axis to the nearest ``span_stride * k + 1`` entries (k >= 1), so a view
+    keeping every ``span_stride``-th entry (a lower scale) ends on the box's far face instead of stopping short
+    of it (``coords_for_stride``: points beyond a view's last entry read that entry).
+    """
     volume = math.prod(float(s) for s in box_size)
     voxel = (volume / num_voxels) ** (1.0 / 3.0)
-    return tuple(max(2, int(float(s) / voxel)) for s in box_size)  # type: ignore[return-value]
+    resolution = [max(2, int(float(s) / voxel)) for s in box_size]
+    if span_stride > 1:
+        resolution = [span_stride * max(1, round((r - 1) / span_stride)) + 1 for r in resolution]
+    return tuple(resolution)  # type: ignore[return-value]
 
 
 class FrugalNeRFField(nn.Module):

@@ -58,6 +58,11 @@ class FrugalNeRFSettings(ModelConfig):
     """L: lower scales below the full one (2 = three scales)."""
     downsample_ratio: int = 4
     """Stride ratio between consecutive scales."""
+    scale_spanning_grid: bool = False
+    """Give every axis of the grid (at the start, after each upsampling and after the shrink) a multiple of the
+    coarsest stride plus one entries (16k+1 with ratio 4 and two lower scales), so each lower scale's strided
+    view spans the whole box. Off: the views stop short of the box's far faces (at a 176-entry axis the 1/16
+    scale's last entry sits at 91 % of it) and the rest of the axis reads that entry."""
     step_ratio: float = 0.5
     """Sample step at full resolution, in voxels."""
     max_samples_per_ray: int = 1024

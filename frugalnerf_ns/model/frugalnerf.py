@@ -60,7 +60,9 @@ class FrugalNeRFModel(Model):
     def populate_modules(self) -> None:
         super().populate_modules()
         aabb = self.scene_box.aabb.float()
-        resolution = resolution_for_voxels(self.config.initial_voxels, (aabb[1] - aabb[0]).tolist())
+        resolution = resolution_for_voxels(
+            self.config.initial_voxels, (aabb[1] - aabb[0]).tolist(), self._span_stride()
+        )
         self.field = FrugalNeRFField(
             aabb=aabb,
             resolution=resolution,
@@ -152,6 +154,17 @@ class FrugalNeRFModel(Model):
             self.num_rendered_scales = previous
 
     # ---- optimisation -----------------------------------------------------------------------------------
+    def _span_stride(self) -> int:
+        """The coarsest scale's stride when every lower scale's view must span the box, else 1."""
+        if not self.config.scale_spanning_grid:
+            return 1
+        return self.config.downsample_ratio**self.config.num_lower_scales
+
+    def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]:
+        """Grid resolution for ``num_voxels`` over the field's current box (``resolution_for_voxels``)."""
+        box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
+        return resolution_for_voxels(num_voxels, box, self._span_stride())
+
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
 

@@ -11,7 +11,7 @@ from typing import List, Optional, Protocol, Tuple
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from frugalnerf_ns.field.radiance_field import FrugalNeRFField, resolution_for_voxels
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.field.tensorial import OptimizerState
 from frugalnerf_ns.model import losses
 from frugalnerf_ns.model.config import FrugalNeRFSettings
@@ -29,6 +29,8 @@ class ScheduledModel(Protocol):
     step: int
     loss_schedule_factor: float
 
+    def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]: ...
+
 
 def training_callbacks(model: ScheduledModel, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
     """What happens at given steps of training, in the order nerfstudio runs them: the model learns the step and
@@ -42,9 +44,8 @@ def training_callbacks(model: ScheduledModel, training_callback_attributes: Trai
     def upsample(step: int) -> None:
         # Fractions that round to the same step (a very short run) upsample once, to the later size.
         voxels = model.upsample_voxels[max(i for i, s in enumerate(upsample_steps) if s == step)]
-        box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
         state = carried_grid_state(model, training_callback_attributes)
-        model.field.upsample(resolution_for_voxels(voxels, box), state)
+        model.field.upsample(model.grid_resolution(voxels), state)
         _restart_grid_optimizer(training_callback_attributes, state)
 
     def update_alpha_mask(step: int) -> None:
@@ -56,8 +57,7 @@ def training_callbacks(model: ScheduledModel, training_callback_attributes: Trai
             voxels = int(model.field.density_grid.resolution.prod())
             state = carried_grid_state(model, training_callback_attributes)
             model.field.shrink(occupied_box, state)
-            box = (model.field.aabb[1] - model.field.aabb[0]).tolist()
-            model.field.upsample(resolution_for_voxels(voxels, box), state)
+            model.field.upsample(model.grid_resolution(voxels), state)
             _restart_grid_optimizer(training_callback_attributes, state)
 
     def follow_step(step: int) -> None:
