@@ -1,5 +1,6 @@
 import math
 
+import pytest
 import torch
 
 from frugalnerf_ns.geometry.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
@@ -59,3 +60,18 @@ def test_opaque_sample_takes_all_weight_and_sets_depth():
     assert torch.allclose(comp.depth, torch.tensor([[3.0]]), atol=1e-4)
     comp.depth.sum().backward()
     assert torch.isfinite(densities.grad).all()
+
+
+def test_transmittance_weights_continue_block_by_block_as_in_one_pass():
+    from frugalnerf_ns.geometry.raymarch import transmittance_weights
+
+    torch.manual_seed(3)
+    optical = torch.rand(5, 40, dtype=torch.float64) * torch.tensor([0.0, 0.01, 0.1, 1.0, 10.0], dtype=torch.float64)[:, None]
+    whole, total = transmittance_weights(optical)
+    first, carried = transmittance_weights(optical[:, :17])
+    second, total_blocks = transmittance_weights(optical[:, 17:], carried)
+    assert torch.allclose(torch.cat([first, second], dim=1), whole, rtol=1e-12, atol=1e-15)
+    assert torch.allclose(total_blocks, total, rtol=1e-12) and torch.allclose(total, optical.sum(dim=1), rtol=1e-12)
+    # The weights telescope: they add up to 1 - exp(-total optical depth), never above 1.
+    assert torch.allclose(whole.sum(dim=1), 1.0 - torch.exp(-total), rtol=1e-12, atol=1e-15)
+    assert whole[0].abs().max() == 0.0 and whole[4, 0] == pytest.approx(1.0 - math.exp(-float(optical[4, 0])))

@@ -74,6 +74,25 @@ class Composited(NamedTuple):
     depth: Float[Tensor, "rays 1"]
 
 
+def transmittance_weights(
+    optical: Float[Tensor, "rays samples"], optical_before: Optional[Float[Tensor, " rays"]] = None
+) -> tuple[Float[Tensor, "rays samples"], Float[Tensor, " rays"]]:
+    """Compositing weights from per-sample optical depths tau_i (NeRF's quadrature):
+    w_i = (1 - exp(-tau_i)) * exp(-(tau_before + sum_{j<i} tau_j)), and the ray's total optical depth after
+    the last sample (what a march continued block by block carries as ``optical_before``).
+
+    The exclusive transmittance is a sum of optical depths, not a product of (1 - alpha) factors (which
+    underflows in float16), and the inclusive sum is shifted rather than each sample's own term subtracted
+    from it: after a large optical depth, sum - own loses the small remainder in float32 and the weights add
+    up to more than 1.
+    """
+    before = torch.cumsum(torch.cat([torch.zeros_like(optical[..., :1]), optical[..., :-1]], dim=-1), dim=-1)
+    if optical_before is not None:
+        before = optical_before[..., None] + before
+    weights = (1.0 - torch.exp(-optical)) * torch.exp(-before)
+    return weights, before[..., -1] + optical[..., -1]
+
+
 def composite_weights(
     densities: Float[Tensor, "rays samples"],
     t: Float[Tensor, "rays samples"],
@@ -98,13 +117,7 @@ def composite_weights(
     # The cap maps an overflowed (+inf) optical depth, e.g. a density of 1e6 in float16, to a finite one;
     # exp(-MAX_OPTICAL_DEPTH) is exactly 0 in every dtype, so results below the cap are unchanged.
     optical = (densities * deltas).clamp(0.0, MAX_OPTICAL_DEPTH)
-    alpha = 1.0 - torch.exp(-optical)
-    # Exclusive cumulative transmittance in log space: a product of many (1 - alpha) factors underflows in
-    # float16, a sum of optical depths does not. Shifting the inclusive sum (rather than subtracting each
-    # sample's own term from it) avoids cancellation: after a large optical depth, sum - own loses the
-    # small remainder in float32 and the weights add up to more than 1.
-    log_transmittance = -torch.cumsum(torch.cat([torch.zeros_like(optical[..., :1]), optical[..., :-1]], dim=-1), dim=-1)
-    weights = alpha * torch.exp(log_transmittance)
+    weights, _ = transmittance_weights(optical)
     accumulation = weights.sum(dim=-1, keepdim=True)
     eps = torch.finfo(weights.dtype).eps
     depth = (weights * t).sum(dim=-1, keepdim=True) / (accumulation + eps)

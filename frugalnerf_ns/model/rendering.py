@@ -26,6 +26,7 @@ from frugalnerf_ns.geometry.raymarch import (
     composite_rgb,
     composite_weights,
     march_steps,
+    transmittance_weights,
 )
 
 
@@ -144,10 +145,7 @@ def render_scale_inference(
         optical = torch.zeros_like(t)
         if valid.any():
             optical[valid] = (field_.density(positions[valid], scale).to(compute) * delta).clamp(0.0, MAX_OPTICAL_DEPTH)
-        before = optical_sum[alive, None] + torch.cumsum(
-            torch.cat([torch.zeros_like(optical[:, :1]), optical[:, :-1]], dim=-1), dim=-1
-        )
-        weights = (1.0 - torch.exp(-optical)) * torch.exp(-before)
+        weights, optical_after = transmittance_weights(optical, optical_sum[alive])
         shade = weights > weight_threshold
         if shade.any():
             colors = torch.zeros(*t.shape, 3, device=t.device, dtype=compute)
@@ -156,7 +154,7 @@ def render_scale_inference(
             rgb[alive] += (weights[..., None] * colors).sum(dim=1)
         accumulation[alive] += weights.sum(dim=-1)
         weighted_t[alive] += (weights * t).sum(dim=-1)
-        optical_sum[alive] = before[:, -1] + optical[:, -1]
+        optical_sum[alive] = optical_after
         next_t = t_near[alive] + (start + block + 0.5) * step
         alive = alive[(next_t < t_far[alive]) & (optical_sum[alive] < stop_optical)]
     eps = torch.finfo(compute).eps
