@@ -256,31 +256,3 @@ def test_points_split_over_threads_read_what_one_grid_sample_reads(threads, n):
     assert ours.shape == no_grad.shape == (6, n)
     assert torch.allclose(no_grad, reference, atol=1e-12) and torch.allclose(ours, reference, atol=1e-12)
     assert torch.allclose(ours_grad, full.grad, atol=1e-12)
-
-
-@pytest.mark.parametrize("length,stride", [(37, 1), (37, 4), (37, 16), (5, 16), (1, 1), (2, 1)])
-def test_line_lerp_without_gradients_reads_what_grid_sample_reads(length, stride):
-    import torch.nn.functional as F
-
-    from frugalnerf_ns.field.tensorial import inference_lookups, sample_line
-
-    torch.manual_seed(2)
-    full = torch.randn(1, 7, length, 1, requires_grad=True)
-    line = full[:, :, ::stride, :]  # a lower scale's strided view, as the scales read it
-    y = torch.cat([torch.rand(3000) * 2.4 - 1.2, torch.tensor([-1.0, 1.0, 0.0])])
-    reference = F.grid_sample(line, torch.stack([torch.zeros_like(y), y], -1).view(1, -1, 1, 2),
-                              mode="bilinear", padding_mode="border", align_corners=True).view(7, -1)
-    with torch.no_grad():
-        outside = sample_line(line, y)
-        with inference_lookups():
-            ours = sample_line(line, y)
-    # Outside the inference marcher's block it is grid_sample, bit for bit (training's alpha masks).
-    assert torch.equal(outside, reference)
-    assert ours.shape == reference.shape
-    assert torch.allclose(ours, reference, atol=1e-6, rtol=1e-6)
-    assert torch.equal(ours[:, -3:-1], line[0, :, [0, -1], 0].detach())  # the end entries exactly
-    # With gradients it is grid_sample's path: the same values and a gradient into the full tensor.
-    with inference_lookups():
-        assert torch.equal(sample_line(line, y), outside)
-        sample_line(line, y).sum().backward()
-    assert full.grad is not None and full.grad[0, :, ::stride].abs().sum() > 0

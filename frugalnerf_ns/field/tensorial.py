@@ -11,10 +11,8 @@ full-resolution entries. The paper's ablation prefers this nearest (strided) dow
 
 from __future__ import annotations
 
-import contextlib
 import math
-import threading
-from typing import Any, Callable, Dict, Iterator, List, MutableMapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, MutableMapping, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -124,42 +122,6 @@ def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Flo
     return _BilinearSampleCPU.apply(plane, x, y)
 
 
-# Per thread (the viewer renders beside the training loop): whether line reads may round differently from
-# grid_sample. Only the inference marcher sets it, so nothing training computes (alpha masks included) moves.
-_lookups = threading.local()
-
-
-@contextlib.contextmanager
-def inference_lookups() -> Iterator[None]:
-    """Within this block, line reads without gradients on the CPU are a 1-D lerp (``sample_line``)."""
-    previous = getattr(_lookups, "lerp_lines", False)
-    _lookups.lerp_lines = True
-    try:
-        yield
-    finally:
-        _lookups.lerp_lines = previous
-
-
-def sample_line(line: Float[Tensor, "1 c l 1"], y: Float[Tensor, " n"]) -> Float[Tensor, "c n"]:
-    """Linear read of a [1, C, L, 1] line at n points in [-1, 1] (align_corners=True, border padding): what
-    ``sample_plane(line, 0, y)`` reads. Inside ``inference_lookups`` without gradients on the CPU it is a 1-D
-    lerp of two gathered entries (grid_sample interpolates over the width-1 second axis as well; the two
-    agree to float rounding); elsewhere it is ``sample_plane``, bit for bit."""
-    lerp = getattr(_lookups, "lerp_lines", False) and not line.is_cuda and not y.requires_grad
-    if not lerp or (torch.is_grad_enabled() and line.requires_grad):
-        return sample_plane(line, torch.zeros_like(y), y)
-    values = line[0, :, :, 0]
-    length = values.shape[1]
-    if length == 1:
-        return values.expand(-1, y.shape[0])
-    f = ((y + 1.0) * 0.5 * (length - 1)).clamp(0, length - 1)
-    # The last interval's upper entry is the border entry itself (weight 1 at f == length - 1).
-    lower = f.floor().clamp(max=length - 2)
-    weight = (f - lower).to(values.dtype)
-    lower = lower.long()
-    return torch.lerp(values.index_select(1, lower), values.index_select(1, lower + 1), weight)
-
-
 class TensorVMGrid(nn.Module):
     """Three planes and three lines with per-plane component counts and a per-axis resolution.
 
@@ -205,7 +167,7 @@ class TensorVMGrid(nn.Module):
         products = []
         for plane, line, (a, b), line_axis in zip(planes, lines, PLANE_AXES, LINE_AXES):
             plane_feat = sample_plane(plane, mapped[:, a], mapped[:, b])
-            line_feat = sample_line(line, mapped[:, line_axis])
+            line_feat = sample_plane(line, torch.zeros_like(mapped[:, line_axis]), mapped[:, line_axis])
             products.append((plane_feat * line_feat).T)
         return products
 

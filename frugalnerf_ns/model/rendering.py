@@ -19,7 +19,6 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
-from frugalnerf_ns.field.tensorial import inference_lookups
 from frugalnerf_ns.model.geometric_adaptation import AdaptationResult
 from frugalnerf_ns.geometry.raymarch import (
     MAX_OPTICAL_DEPTH,
@@ -103,7 +102,6 @@ class PixelRender(NamedTuple):
 
 
 @torch.no_grad()
-@inference_lookups()
 def render_scale_inference(
     field_: FrugalNeRFField,
     origins: Float[Tensor, "rays 3"],
@@ -122,8 +120,7 @@ def render_scale_inference(
     alive: the same samples (``march_steps``' rule), the same compositing (``composite_weights``: optical
     depth capped, exclusive transmittance from summed optical depths), the same colour threshold. A ray leaves
     the march when its next block starts past its segment's end or its transmittance drops below
-    ``termination`` (0 keeps every ray to its end: the dense result up to float rounding). Line reads are a 1-D
-    lerp on the CPU (``inference_lookups``)."""
+    ``termination`` (0 keeps every ray to its end: the dense result up to float rounding)."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
     rays = origins.shape[0]
