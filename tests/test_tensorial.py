@@ -226,33 +226,3 @@ def test_cpu_sampling_matches_grid_sample_values_and_gradients(shape):
     assert torch.allclose(ours, reference.view(shape[1], -1), atol=1e-12)
     assert torch.allclose(ours_grad, full.grad, atol=1e-12)
 
-
-@pytest.mark.parametrize("threads,n", [(2, 5001), (3, 9000), (1, 5001), (2, 100)])
-def test_points_split_over_threads_read_what_one_grid_sample_reads(threads, n):
-    """Above a few thousand points the CPU lookup splits them into one batch entry per thread (grid_sample
-    parallelises over the batch only); values and plane gradients equal one grid_sample call."""
-    import torch.nn.functional as F
-
-    from frugalnerf_ns.field.tensorial import sample_plane
-
-    torch.manual_seed(1)
-    full = torch.randn(1, 6, 34, 26, dtype=torch.float64, requires_grad=True)
-    plane = full[:, :, ::4, ::4]
-    coords = torch.rand(n, 2, dtype=torch.float64) * 2.2 - 1.1
-    weights = torch.randn(6, n, dtype=torch.float64)
-    previous = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        with torch.no_grad():
-            no_grad = sample_plane(plane, coords[:, 0], coords[:, 1])
-        ours = sample_plane(plane, coords[:, 0], coords[:, 1])
-        (ours * weights).sum().backward()
-    finally:
-        torch.set_num_threads(previous)
-    ours_grad, full.grad = full.grad.clone(), None
-    reference = F.grid_sample(plane, coords.view(1, -1, 1, 2), mode="bilinear", padding_mode="border", align_corners=True)
-    reference = reference.view(6, -1)
-    (reference * weights).sum().backward()
-    assert ours.shape == no_grad.shape == (6, n)
-    assert torch.allclose(no_grad, reference, atol=1e-12) and torch.allclose(ours, reference, atol=1e-12)
-    assert torch.allclose(ours_grad, full.grad, atol=1e-12)

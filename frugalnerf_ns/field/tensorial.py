@@ -61,32 +61,6 @@ def _corners(x: Tensor, y: Tensor, height: int, width: int):
             (y1 * width + x0, (1 - wx) * wy), (y1 * width + x1, wx * wy))
 
 
-# Below this many points one thread is as fast as two (the split's copies cost more than they save).
-_SPLIT_MIN_POINTS = 4096
-
-
-def _grid_sample_points(plane: Tensor, x: Tensor, y: Tensor) -> Tensor:
-    """F.grid_sample of a [1, C, H, W] tensor at n points (align_corners, border padding), as [C, n].
-
-    torch's CPU grid_sample parallelises over the batch only, which is 1 for a plane: on the CPU the points
-    are split into one batch entry per thread, each reading the same (expanded, not copied) plane.
-    """
-    n = x.shape[0]
-    parts = torch.get_num_threads() if plane.device.type == "cpu" else 1
-    if parts <= 1 or n < _SPLIT_MIN_POINTS:
-        grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2)
-        return F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True).view(plane.shape[1], -1)
-    per_part = -(-n // parts)
-    grid = torch.stack([x, y], dim=-1)
-    if per_part * parts != n:
-        grid = torch.cat([grid, grid.new_zeros(per_part * parts - n, 2)])
-    out = F.grid_sample(
-        plane.expand(parts, -1, -1, -1), grid.view(parts, per_part, 1, 2),
-        mode="bilinear", padding_mode="border", align_corners=True,
-    )
-    return out.squeeze(-1).permute(1, 0, 2).reshape(plane.shape[1], -1)[:, :n]
-
-
 class _BilinearSampleCPU(torch.autograd.Function):
     """grid_sample's forward, and its input gradient as four index_add_ calls.
 
@@ -97,9 +71,11 @@ class _BilinearSampleCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, plane: Tensor, x: Tensor, y: Tensor) -> Tensor:  # type: ignore[override]
+        grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2)
+        out = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)
         ctx.save_for_backward(x, y)
         ctx.plane_shape, ctx.plane_dtype = plane.shape, plane.dtype
-        return _grid_sample_points(plane, x, y)
+        return out.view(plane.shape[1], -1)
 
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
@@ -114,11 +90,9 @@ class _BilinearSampleCPU(torch.autograd.Function):
 def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Float[Tensor, " n"]) -> Float[Tensor, "c n"]:
     """Bilinear read of a [1, C, H, W] tensor at n points, x along the width and y along the height in
     [-1, 1] (align_corners=True, border padding): F.grid_sample, with a faster backward on the CPU."""
-    if plane.is_cuda or x.requires_grad or y.requires_grad:
+    if plane.is_cuda or x.requires_grad or y.requires_grad or not torch.is_grad_enabled():
         grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2)
         return F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True).view(plane.shape[1], -1)
-    if not (torch.is_grad_enabled() and plane.requires_grad):
-        return _grid_sample_points(plane, x, y)
     return _BilinearSampleCPU.apply(plane, x, y)
 
 
