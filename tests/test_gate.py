@@ -211,7 +211,7 @@ def test_committed_baseline_covers_the_gate_scenes_with_all_their_seeds():
         pytest.fail("configs/gate_baseline.yaml is missing: record it with `frugalnerf-gate --record`")
     baseline = gate.load_baseline(path)
     _, scenes = gate.load_gate(ROOT / "configs" / "gate.yaml")
-    assert set(baseline["commit"].split("+")) == {e["commit"] for e in baseline["scenes"].values()}
+    assert set(baseline["commit"].split("+")) == {c for e in baseline["scenes"].values() for c in e["commit"].split("+")}
     assert {s.label for s in scenes} <= set(baseline["scenes"])
     for scene in scenes:
         entry = baseline["scenes"][scene.label]
@@ -221,3 +221,15 @@ def test_committed_baseline_covers_the_gate_scenes_with_all_their_seeds():
         for metric in gate.METRICS:
             values = [entry["seeds"][seed][metric] for seed in scene.seeds]
             assert entry["mean"][metric] == pytest.approx(sum(values) / len(values), abs=1e-3), (scene.label, metric)
+
+
+def test_a_recorded_baseline_names_the_commit_each_scene_trained_at(tmp_path):
+    # Runs resumed from a folder of another commit: each scene keeps its own commit, the file names all.
+    gate_file, out = _gate_files(tmp_path)
+    baseline = tmp_path / "baseline.yaml"
+    _fill(out, gate_file, {("a-2v", 1): 17.0}, commit="aaaa111")
+    _fill(out, gate_file, {("b-2v", 1): 15.0, ("b-2v", 2): 15.4}, commit="bbbb222")
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out), "--record"]) == 0
+    recorded = gate.load_baseline(baseline)
+    assert recorded["scenes"]["a-2v"]["commit"] == "aaaa111" and recorded["scenes"]["b-2v"]["commit"] == "bbbb222"
+    assert recorded["commit"] == "aaaa111+bbbb222"

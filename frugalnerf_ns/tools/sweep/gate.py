@@ -24,7 +24,7 @@ import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
 import yaml
 
@@ -188,18 +188,20 @@ def table(scenes: Sequence[GateScene], summaries: Mapping[str, Mapping[str, Any]
     return "\n".join(lines)
 
 
-def baseline_document(scenes: Sequence[GateScene], summaries: Mapping[str, Mapping[str, Any]], commit: str,
+def baseline_document(scenes: Sequence[GateScene], summaries: Mapping[str, Mapping[str, Any]],
+                      commit: Union[str, Mapping[str, str]],
                       previous: Optional[Mapping[str, Any]] = None) -> Dict[str, Any]:
-    """The baseline file's content from this run's summaries; scenes not run keep their previous entry."""
+    """The baseline file's content from this run's summaries; scenes not run keep their previous entry.
+    ``commit``: the commit the runs were trained at, or per scene label (``a+b`` when its seeds' runs differ)."""
     entries = dict((previous or {}).get("scenes") or {})
     for s in scenes:
         summary = summaries[s.label]
-        entries[s.label] = {"commit": commit, "seeds": summary["seeds"],
+        entries[s.label] = {"commit": commit if isinstance(commit, str) else commit[s.label], "seeds": summary["seeds"],
                             "mean": {m: round(v, 4) for m, v in summary["mean"].items()},
                             "spread": {m: round(v, 4) for m, v in summary["spread"].items()}}
     # The file's commit names every commit its scenes were recorded at (a subset recorded later adds its own).
-    commits = sorted({str(e.get("commit")) for e in entries.values() if e.get("commit")}) or [commit]
-    return {"commit": "+".join(commits), "recorded": datetime.date.today().isoformat(), "scenes": entries}
+    commits = sorted({c for e in entries.values() if e.get("commit") for c in str(e["commit"]).split("+")})
+    return {"commit": "+".join(commits or [str(commit)]), "recorded": datetime.date.today().isoformat(), "scenes": entries}
 
 
 # What a run computes depends on these; the gate's own files, docs and tests do not change it.
@@ -300,8 +302,10 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f"frugalnerf-gate: not recording: runs failed on {', '.join(broken)}", file=sys.stderr)
             return 1
         # The commit the runs were trained at (a resumed or --out folder may hold another commit's runs).
-        trained_at = sorted({str(records[spec.key].get("commit") or version) for spec in every if spec.key in records})
-        document = baseline_document(scenes, summaries, "+".join(trained_at) or version, baseline)
+        trained_at = {label: "+".join(sorted({str(records[spec.key].get("commit") or version)
+                                              for spec in group if spec.key in records}))
+                      for label, group in specs.items()}
+        document = baseline_document(scenes, summaries, trained_at, baseline)
         header = ("# Quality gate baseline: each scene's mean over its seeds, written by `frugalnerf-gate --record`.\n"
                   "# Update it only in a commit that means to move the numbers, and say why there.\n")
         args.baseline.write_text(header + yaml.safe_dump(document, sort_keys=False))
