@@ -2,8 +2,10 @@
 lines, and frame 0 showing what the nearest training camera shows."""
 
 import os
+from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from PIL import Image
 
@@ -81,10 +83,17 @@ def test_render_benchmark_times_every_row_on_one_run(trained_run, tmp_path, caps
 
     _, run_dir = trained_run
     out = tmp_path / "render.json"
-    render.main([str(run_dir / "config.yml"), "--frames", "2", "--views", "1", "--out", str(out)])
+    # --before with this very tree: its marcher loaded from the file, timed beside the imported one.
+    tree = Path(render.__file__).resolve().parents[2]
+    render.main([str(run_dir / "config.yml"), "--frames", "2", "--views", "1", "--out", str(out),
+                 "--before", str(tree), "--repeats", "1"])
     records = json.loads(out.read_text())
     assert [r["row"].split(",")[0] for r in records] == (
-        ["test view"] * 2 + ["spiral frame", "ns-eval per test view", "offline evaluator per test view"])
+        ["test view"] * 2 + ["spiral frame", "ns-eval per test view", "offline evaluator per test view"]
+        + ["test view"] * 2)
+    assert f"of {tree} (before)" in records[5]["row"] and records[0]["psnr_inference_vs_before"] > 100
     assert all(r["seconds"] > 0 for r in records) and "| test view, inference marcher (now)" in capsys.readouterr().out
     # The two marchers render the same test view (the inference one stops rays once opaque: < 1/255 apart).
     assert records[0]["psnr_inference_vs_training_marcher"] > 50 and records[0]["max_pixel_difference"] < 1 / 255
+    with pytest.raises(SystemExit, match="no .*rendering.py"):
+        render.main([str(run_dir / "config.yml"), "--before", str(tmp_path)])

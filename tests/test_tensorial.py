@@ -226,3 +226,53 @@ def test_cpu_sampling_matches_grid_sample_values_and_gradients(shape):
     assert torch.allclose(ours, reference.view(shape[1], -1), atol=1e-12)
     assert torch.allclose(ours_grad, full.grad, atol=1e-12)
 
+
+
+def density_where_inside(field, points, scale=0):
+    """The reference: the planes' density where ``inside`` holds, 0 elsewhere."""
+    return torch.where(field.inside(points), field.density(points, scale), torch.zeros(points.shape[0]))
+
+
+# The mask multiplies the activated density, whichever the activation: one masked case suffices.
+@pytest.mark.parametrize("activation, mask", [("relu", False), ("softplus", False), ("relu", True)])
+def test_baked_density_reads_what_the_planes_and_lines_give_where_occupied_at_every_scale(activation, mask):
+    # Resolutions that are not 4k+1 or 16k+1: the lower scales' views stop short of the far faces there, and
+    # points beyond read the border entry in both paths. Points reach outside the box (density 0 there).
+    torch.manual_seed(0)
+    aabb = torch.tensor([[-1.0, -0.5, -2.0], [1.5, 0.5, 1.0]])
+    field = FrugalNeRFField(aabb, (23, 10, 30), density_components=(5, 3, 2), appearance_components=(2, 2, 2),
+                            density_activation=activation, mlp_implementation="torch")
+    with torch.no_grad():
+        if mask:  # empty one corner, so the mask leaves it out; then shrink, so the mask's box is the larger
+            for plane in field.density_grid.planes:
+                plane[:, :, :6, :6] = -5.0
+            field.shrink(field.update_alpha_mask(0.5, 25.0, threshold=0.05))
+            assert 0.05 < field.alpha_mask.float().mean() < 0.95
+    points = aabb[0] + torch.rand(6000, 3) * (aabb[1] - aabb[0]) * 1.1 - 0.05 * (aabb[1] - aabb[0])
+    with torch.no_grad():
+        assert 0.1 < field.inside(points).float().mean() < 0.9
+        for scale in range(field.num_scales):
+            reference = density_where_inside(field, points, scale)
+            baked = field.occupied_density(points, scale)
+            assert baked.shape == reference.shape
+            assert torch.allclose(baked, reference, atol=1e-5, rtol=1e-5), (scale, (baked - reference).abs().max())
+
+
+def test_baked_density_follows_an_optimiser_step_and_a_resize():
+    torch.manual_seed(1)
+    field = FrugalNeRFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), (12, 12, 12), density_components=(2, 2, 2),
+                            appearance_components=(2, 2, 2), mlp_implementation="torch")
+    points = torch.rand(500, 3) * 2 - 1
+    optimizer = torch.optim.Adam(field.density_grid.parameters(), lr=0.1)
+    with torch.no_grad():
+        before = field.occupied_density(points).clone()
+    field.density(points).sum().backward()
+    optimizer.step()  # in place: the baked tensor is stale now
+    with torch.no_grad():
+        after = field.occupied_density(points)
+        assert not torch.allclose(after, before)
+        assert torch.allclose(after, field.density(points), atol=1e-5)
+        field.upsample((17, 15, 13))
+        assert torch.allclose(field.occupied_density(points), field.density(points), atol=1e-5)
+        field.update_alpha_mask(0.5, 25.0, threshold=0.5)  # a new mask: empty voxels read 0 from now on
+        assert torch.allclose(field.occupied_density(points), density_where_inside(field, points), atol=1e-5)

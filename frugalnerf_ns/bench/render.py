@@ -7,6 +7,9 @@ Rows (seconds per frame or per test view, same machine, same model, same image s
   (``--pipeline.model.fast-inference False``);
 - test view, inference marcher (now): ``render_scale_inference``, blocks of slots, rays dropped once they
   leave the box or turn opaque; with the PSNR and largest pixel difference between the two renders;
+- with ``--before DIR`` (a source tree of an earlier commit, e.g. ``git worktree add /tmp/before <rev>``): test
+  view, that tree's ``render_scale_inference`` run on this process's model (it must call only field methods
+  this tree still has), timed alternately with this tree's over ``--repeats`` rounds (medians);
 - spiral frame, now: the scene's video path (``video.scene_video_cameras``), what ``ns-render spiral`` renders;
 - ns-eval per test view, now: nerfstudio's ``get_average_eval_image_metrics`` calls for a subset of views;
 - offline evaluator per test view: ``offline_tools.score_test_view``, what ``offline_tools eval`` runs per view.
@@ -16,6 +19,8 @@ Prints a Markdown table and writes JSON.
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -35,9 +40,12 @@ def main(argv=None) -> list:
     parser.add_argument("--frames", type=int, default=4, help="spiral frames timed per row")
     parser.add_argument("--views", type=int, default=3, help="test views timed per evaluation row (at most all)")
     parser.add_argument("--out", type=Path, default=Path("outputs/benchmark_render.json"))
+    parser.add_argument("--before", type=Path, help="source tree of an earlier commit: time its inference marcher too")
+    parser.add_argument("--repeats", type=int, default=3, help="alternating rounds of the --before comparison")
     args = parser.parse_args(argv)
     if not args.config.is_file():
         sys.exit(f"benchmark_render: error: {args.config} is not a file (pass <run>/config.yml)")
+    before_marcher = marcher_from_tree(args.before) if args.before else None
 
     import torch
     from nerfstudio.utils.eval_utils import eval_setup
@@ -75,11 +83,27 @@ def main(argv=None) -> list:
 
     renders = {}
 
-    def test_views(fast: bool):
+    def test_views(fast: bool, key=None):
         model.config.fast_inference = fast
         with torch.no_grad():
-            renders[fast] = [model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))["rgb"]
-                             for i in views]
+            renders[fast if key is None else key] = [
+                model.get_outputs_for_camera(dataset.cameras[i : i + 1].to(model.device))["rgb"] for i in views]
+
+    def compare_before() -> list:
+        """This tree's inference marcher and the --before tree's, alternating, median seconds per test view."""
+        import frugalnerf_ns.model.frugalnerf as model_module
+
+        now_marcher, times = model_module.render_scale_inference, {"before": [], "now": []}
+        try:
+            for _ in range(args.repeats):
+                for key, marcher in (("before", before_marcher), ("now", now_marcher)):
+                    model_module.render_scale_inference = marcher
+                    times[key].append(timed(lambda: test_views(True, key)) / len(views))
+        finally:
+            model_module.render_scale_inference = now_marcher
+        return [(f"test view, inference marcher of {args.before} (before), median of {args.repeats}",
+                 statistics.median(times["before"])),
+                (f"test view, inference marcher (now), median of {args.repeats}", statistics.median(times["now"]))]
 
     model.num_rendered_scales = None  # the default outside the viewer: the full scale only
     ours = scene_video_cameras(datamanager, start, args.frames)
@@ -91,9 +115,11 @@ def main(argv=None) -> list:
         ("ns-eval per test view, now", timed(ns_eval) / len(views)),
         ("offline evaluator per test view", timed(offline) / len(views)),
     ]
-    difference = torch.cat([(a - b).flatten() for a, b in zip(renders[True], renders[False])])
-    agreement = {"psnr_inference_vs_training_marcher": float(-10 * torch.log10((difference**2).mean().clamp_min(1e-20))),
-                 "max_pixel_difference": float(difference.abs().max())}
+    agreement = {"psnr_inference_vs_training_marcher": psnr_between(renders[True], renders[False]),
+                 "max_pixel_difference": largest_difference(renders[True], renders[False])}
+    if before_marcher is not None:
+        rows += compare_before()
+        agreement["psnr_inference_vs_before"] = psnr_between(renders["now"], renders["before"])
     model.num_rendered_scales = None
     records = [{"run": str(args.config.parent), "row": name, "seconds": seconds, "image": size,
                 "threads": torch.get_num_threads(), "device": str(pipeline.device), **agreement}
@@ -103,5 +129,32 @@ def main(argv=None) -> list:
     table += (f"\n\ninference vs training marcher on {len(views)} test views: PSNR "
               f"{agreement['psnr_inference_vs_training_marcher']:.1f} dB, largest pixel difference "
               f"{agreement['max_pixel_difference']:.2e}")
+    if before_marcher is not None:
+        table += (f"\ninference marcher now vs {args.before}: PSNR {agreement['psnr_inference_vs_before']:.1f} dB, "
+                  f"largest pixel difference {largest_difference(renders['now'], renders['before']):.2e}")
     write_report("benchmark_render", table, records, args.out)
     return records
+
+
+def psnr_between(first: list, second: list) -> float:
+    import torch
+
+    difference = torch.cat([(a - b).flatten() for a, b in zip(first, second)])
+    return float(-10 * torch.log10((difference**2).mean().clamp_min(1e-20)))
+
+
+def largest_difference(first: list, second: list) -> float:
+    return max(float((a - b).abs().max()) for a, b in zip(first, second))
+
+
+def marcher_from_tree(tree: Path):
+    """``render_scale_inference`` of another source tree's ``frugalnerf_ns/model/rendering.py``, loaded under a
+    private module name beside this tree's package (whose other modules it imports)."""
+    path = tree / "frugalnerf_ns" / "model" / "rendering.py"
+    if not path.is_file():
+        sys.exit(f"benchmark_render: error: --before {tree}: no {path} (pass a source tree, e.g. a git worktree)")
+    spec = importlib.util.spec_from_file_location("frugalnerf_before_rendering", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
+    spec.loader.exec_module(module)  # type: ignore[union-attr]
+    return module.render_scale_inference

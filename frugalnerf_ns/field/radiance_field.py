@@ -7,17 +7,26 @@ basis matrix and one colour MLP are shared by all scales, so adding scales adds 
 from __future__ import annotations
 
 import math
-from typing import List, Literal, Optional, Sequence, Tuple
+from dataclasses import dataclass, field as dataclass_field
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
-from frugalnerf_ns.field.tensorial import OptimizerState, TensorVMGrid
+from frugalnerf_ns.field.tensorial import OptimizerState, TensorVMGrid, strided_length, trilinear_rows
 
 DensityActivation = Literal["relu", "softplus"]
+
+BAKED_DENSITY_MAX_ENTRIES = 2**26
+"""Largest grid (nodes) whose density is baked into one dense tensor for rendering outside training: 256 MiB
+in float32 (a 400^3 grid). The paper preset's 640^3 grid reads its planes instead."""
+
+BAKED_FEATURES_MAX_ENTRIES = 2**27
+"""Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
+(the CPU presets' ~4 M nodes x 27; the paper preset's grid reads its planes)."""
 
 
 def activate_density(raw: Tensor, activation: DensityActivation, softplus_shift: float = -10.0) -> Tensor:
@@ -99,6 +108,10 @@ class FrugalNeRFField(nn.Module):
         # buffer so checkpoints carry it; an empty (0,0,0) tensor stands for "no mask yet".
         self.register_buffer("alpha_mask", torch.zeros(0, 0, 0, dtype=torch.bool))
         self.register_buffer("alpha_mask_aabb", aabb.clone().float())
+        # The density grid baked into one dense tensor per stride and the mask as a volume
+        # (``occupied_density``), with the versions of what they were baked from.
+        self._baked_cache: Tuple[tuple, Dict] = ((), {})
+        self._features_cache: Tuple[tuple, Dict] = ((), {})
 
     # ---- geometry of the grid -------------------------------------------------------------------------
     def stride(self, scale: int) -> int:
@@ -133,6 +146,95 @@ class FrugalNeRFField(nn.Module):
         coords = self.normalize(positions)
         raw = sum(p.sum(dim=-1) for p in self.density_grid.plane_line_products(coords, self.stride(scale)))
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
+
+    def sampling_map(self, stride: int = 1) -> Tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
+        """a, b with ``coords = p * a + b``: the corner-aligned [-1, 1] coordinates at which a scale of this
+        stride reads world point p (``normalize`` then ``coords_for_stride``, which is affine per axis:
+        x' = (x + 1) k - 1 with k = (R - 1) / (s (n - 1)), or 0 where the view keeps one entry)."""
+        a = 2.0 / (self.aabb[1] - self.aabb[0])
+        b = -self.aabb[0] * a - 1.0
+        if stride == 1:
+            return a, b
+        res = self.density_grid.resolution_tuple
+        k = [0.0 if strided_length(r, stride) == 1 else (r - 1) / (stride * (strided_length(r, stride) - 1)) for r in res]
+        k = torch.tensor(k, device=a.device, dtype=a.dtype)
+        return a * k, torch.where(k > 0, (b + 1.0) * k - 1.0, torch.zeros_like(b))
+
+    def _baked_key(self) -> tuple:
+        tensors = list(self.density_grid.planes) + list(self.density_grid.lines) + [self.alpha_mask, self.aabb]
+        return tuple((t.data_ptr(), t._version, tuple(t.shape), t.dtype, t.device) for t in tensors)
+
+    @torch.no_grad()
+    def baked_density(self, scale: int = 0) -> Optional["BakedDensity"]:
+        """The density of a scale as one dense tensor and the alpha mask as a volume (``BakedDensity``), for
+        rendering outside training; None for grids above ``BAKED_DENSITY_MAX_ENTRIES`` nodes. Cached, and rebuilt
+        when a parameter, the mask or the box changed since (an optimiser step, an upsampling, a mask update, a
+        shrink)."""
+        res = self.density_grid.resolution_tuple
+        if math.prod(res) > BAKED_DENSITY_MAX_ENTRIES:
+            return None
+        key, baked = self._baked_cache
+        current = self._baked_key()
+        if key != current:
+            baked = {1: self.density_grid.node_sum()[None, None]}
+            self._baked_cache = (current, baked)
+        stride = self.stride(scale)
+        if stride not in baked:
+            baked[stride] = baked[1][:, :, ::stride, ::stride, ::stride].contiguous()
+        if ("lookup", stride) not in baked:
+            baked[("lookup", stride)] = BakedDensity.build(self, baked[stride], stride)
+        return baked[("lookup", stride)]
+
+    @torch.no_grad()
+    def baked_features(self, scale: int = 0) -> Optional[Tuple[Tensor, Tuple[int, int, int], Tensor, Tensor]]:
+        """The appearance features on the grid's nodes at a scale (``TensorVMGrid.node_features``, the basis
+        applied) as a channels-last [nodes, K] table, its node counts (x, y, z) and the affine map from world
+        points to node units (``index = p * a + b``); None above ``BAKED_FEATURES_MAX_ENTRIES``. Cached as
+        ``baked_density``, rebuilt when an appearance parameter or the box changed."""
+        res = self.appearance_grid.resolution_tuple
+        basis = self.appearance_basis.weight
+        if math.prod(res) * basis.shape[0] > BAKED_FEATURES_MAX_ENTRIES:
+            return None
+        tensors = list(self.appearance_grid.planes) + list(self.appearance_grid.lines) + [basis, self.aabb]
+        current = tuple((t.data_ptr(), t._version, tuple(t.shape), t.dtype, t.device) for t in tensors)
+        key, baked = self._features_cache
+        if key != current:
+            baked = {1: self.appearance_grid.node_features(basis)}
+            self._features_cache = (current, baked)
+        stride = self.stride(scale)
+        if ("table", stride) not in baked:
+            nodes = baked[1] if stride == 1 else baked[1][::stride, ::stride, ::stride]
+            dims = (nodes.shape[2], nodes.shape[1], nodes.shape[0])
+            a, b = self.sampling_map(stride)
+            to_index = 0.5 * (torch.tensor(dims, device=a.device, dtype=a.dtype) - 1)
+            baked[("table", stride)] = (nodes.reshape(-1, nodes.shape[-1]).contiguous(), dims, a * to_index,
+                                        (b + 1.0) * to_index)
+        return baked[("table", stride)]
+
+    @torch.no_grad()
+    def inference_color(
+        self, positions: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], scale: int = 0
+    ) -> Float[Tensor, "n 3"]:
+        """``color`` outside training: the features read from ``baked_features`` (8 row gathers per point
+        instead of three planes, three lines and the basis; equal to float rounding)."""
+        baked = self.baked_features(scale)
+        if baked is None:
+            return self.color(positions, directions, scale)
+        table, dims, a, b = baked
+        return self.color_mlp(trilinear_rows(table, dims, positions * a + b), directions)
+
+    @torch.no_grad()
+    def occupied_density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
+        """Density where ``inside`` holds and 0 elsewhere (outside training: ``baked_density``'s reads, or
+        ``inside`` and the planes for a grid too large to bake)."""
+        baked = self.baked_density(scale)
+        if baked is not None:
+            return baked.at(positions)
+        occupied = self.inside(positions)
+        density = torch.zeros(positions.shape[0], device=positions.device, dtype=positions.dtype)
+        if occupied.any():
+            density[occupied] = self.density(positions[occupied], scale).to(density.dtype)
+        return density
 
     def color(
         self, positions: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], scale: int = 0
@@ -201,3 +303,136 @@ class FrugalNeRFField(nn.Module):
 
     def network_parameters(self) -> List[nn.Parameter]:
         return list(self.appearance_basis.parameters()) + list(self.color_mlp.parameters())
+
+
+@dataclass(frozen=True)
+class BakedDensity:
+    """One scale's density as a dense [1, 1, Z, Y, X] tensor and the alpha mask as a [1, 1, Z, Y, X] volume,
+    with the affine maps from world points to their grid_sample coordinates (``coords = point * a + b``).
+
+    A plane read bilinearly times its line read linearly is a trilinear read of their outer product on the
+    nodes, so one trilinear read of ``TensorVMGrid.node_sum`` gives the planes' density (to float rounding) at
+    a sixth of the reads; the mask is read at the nearest voxel as ``FrugalNeRFField.inside`` rounds it (half to
+    even), and reads 0 outside its box. Every point is read, occupied or not: no selection first.
+    """
+
+    grid: Tensor
+    grid_a: Tensor
+    grid_b: Tensor
+    mask: Optional[Tensor]
+    mask_a: Tensor
+    mask_b: Tensor
+    activation: DensityActivation
+    box: Tensor
+    _dilated: Dict[tuple, Tensor] = dataclass_field(default_factory=dict, compare=False, repr=False)
+
+    @staticmethod
+    def build(field: "FrugalNeRFField", grid: Tensor, stride: int) -> "BakedDensity":
+        a, b = field.sampling_map(stride)
+        if field.alpha_mask.numel():
+            mask = field.alpha_mask.permute(2, 1, 0).to(grid.dtype)[None, None].contiguous()
+            box = field.alpha_mask_aabb
+            mask_a = 2.0 / (box[1] - box[0])
+            mask_b = -box[0] * mask_a - 1.0
+        else:
+            mask, mask_a, mask_b = None, a, b
+        return BakedDensity(grid, a, b, mask, mask_a, mask_b, field.density_activation, field.aabb.clone())
+
+    def _read(self, coords: Tensor, mask_coords: Optional[Tensor]) -> Tensor:
+        shape = coords.shape[:-1]
+        raw = F.grid_sample(self.grid, coords.reshape(1, 1, 1, -1, 3).to(self.grid.dtype), mode="bilinear",
+                            padding_mode="border", align_corners=True)
+        density = activate_density(raw.view(shape), self.activation)
+        if self.mask is not None and mask_coords is not None:
+            occupied = F.grid_sample(self.mask, mask_coords.reshape(1, 1, 1, -1, 3).to(self.mask.dtype), mode="nearest",
+                                     padding_mode="zeros", align_corners=True)
+            density = density * occupied.view(shape)
+        return density
+
+    def _dilated_occupancy(self, which: str, radius: Tuple[int, int, int]) -> Tensor:
+        """Flat bool volume, dilated by ``radius`` entries (z, y, x): ``"cells"``, the density grid's cells
+        whose density can be non-zero (a trilinear read is a convex combination of the cell's 8 nodes and the
+        activation is monotone, so a cell whose nodes all activate to 0 reads 0 everywhere; softplus never
+        does); ``"mask"``, the alpha mask's occupied voxels."""
+        key = (which, radius)
+        if key not in self._dilated:
+            if which == "cells":
+                volume = (F.max_pool3d(activate_density(self.grid, self.activation), kernel_size=2, stride=1) > 0)
+            else:
+                volume = self.mask > 0  # type: ignore[operator]
+            volume = volume.to(self.grid.dtype)
+            for axis, r in enumerate(radius):  # separable: three 1-D passes instead of a (2r+1)^3 box
+                if r > 0:
+                    kernel, padding = [1, 1, 1], [0, 0, 0]
+                    kernel[axis], padding[axis] = 2 * r + 1, r
+                    volume = F.max_pool3d(volume, kernel_size=kernel, stride=1, padding=padding)
+            self._dilated[key] = volume.reshape(-1) > 0
+        return self._dilated[key]
+
+    @staticmethod
+    def _group_hits(volume: Tensor, dims: Tensor, f_origin: Tensor, f_direction: Tensor, t: Tensor, rounding: bool) -> Tensor:
+        """Look a flat volume of ``dims`` (x, y, z) entries up at index-space points f_origin + t f_direction,
+        the entry floor(f) (cells) or round(f) (nodes), clamped into the volume: a point beyond a face clamps
+        onto it, no farther from the in-box slots around it than the point itself."""
+        index = torch.addcmul(f_origin[:, None, :], f_direction[:, None, :], t[..., None])
+        index = index.round() if rounding else index.floor()
+        index = torch.minimum(index.clamp_min(0), dims - 1).long()
+        flat = (index[..., 2] * int(dims[1]) + index[..., 1]) * int(dims[0]) + index[..., 0]
+        return volume[flat]
+
+    def first_slots(
+        self,
+        origins: Float[Tensor, "rays 3"],
+        directions: Float[Tensor, "rays 3"],
+        t_near: Float[Tensor, " rays"],
+        step: float,
+        num_samples: int,
+        group: int = 16,
+    ) -> Int[Tensor, " rays"]:
+        """Per ray, a slot index (a multiple of ``group``) before which every slot ``t_near + (i + 0.5) step``
+        has density exactly 0 (``num_samples`` when all have), so a march may start there and composite the
+        same pixels. One lookup per ``group`` slots at the group's centre, in volumes dilated by how far the
+        group's slots (and their nearest mask voxels) lie from it: the density grid's cells that can be
+        non-zero (ReLU fields), or the alpha mask's occupied voxels (softplus)."""
+        device, dtype = origins.device, origins.dtype
+        groups = -(-num_samples // group)
+        centre = torch.arange(groups, device=device, dtype=dtype) * group + 0.5 * group
+        t = t_near[:, None] + centre[None, :] * step
+        hit = torch.ones(t.shape, dtype=torch.bool, device=device)
+        # One bound suffices, each alone being conservative: a ReLU field's zero cells (tighter than the mask,
+        # which is dilated); softplus is never 0, so there only the mask can say empty.
+        volumes = [("cells", self.grid, self.grid_a, self.grid_b, 1)] if self.activation == "relu" else []
+        if self.mask is not None and not volumes:
+            volumes.append(("mask", self.mask, self.mask_a, self.mask_b, 0))
+        for which, volume, a, b, cell in volumes:
+            nodes = torch.tensor(volume.shape[2:][::-1], device=device, dtype=dtype)  # x, y, z
+            if bool((nodes < 2).any()):
+                continue  # a one-entry axis: no cells to bound (the lower scales of a tiny grid)
+            to_index = 0.5 * (nodes - 1)  # grid_sample's corner-aligned coordinates in [-1, 1] to entries
+            f_origin, f_direction = (origins * a + b + 1.0) * to_index, directions * a * to_index
+            # How far (in entries) a group's slots lie from its centre, plus the half entry between a point and
+            # its nearest node and one for rounding.
+            reach = (0.5 * group * step) * f_direction.abs().amax(dim=0) + (0.0 if cell else 0.5)
+            radius = tuple(int(r) + 1 for r in reach.ceil().tolist()[::-1])
+            occupancy = self._dilated_occupancy(which, radius)  # type: ignore[arg-type]
+            hit &= self._group_hits(occupancy, nodes - cell, f_origin, f_direction, t, rounding=not cell)
+        first = torch.where(hit.any(dim=-1), hit.to(torch.uint8).argmax(dim=-1), torch.full_like(t_near, groups, dtype=torch.long))
+        return (first * group).clamp(max=num_samples)
+
+    def at(self, positions: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
+        """Density at world points, 0 outside the box or the mask."""
+        in_box = ((positions >= self.box[0]) & (positions <= self.box[1])).all(dim=-1)
+        density = self._read(positions * self.grid_a + self.grid_b, positions * self.mask_a + self.mask_b)
+        return torch.where(in_box, density, torch.zeros_like(density))
+
+    def along_rays(
+        self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], t: Float[Tensor, "rays samples"]
+    ) -> Float[Tensor, "rays samples"]:
+        """Density at origins + t * directions, 0 outside the mask; the caller keeps t inside the rays' box
+        segments (no box test here). The coordinates are affine in t: no world points are formed."""
+        coords = torch.addcmul((origins * self.grid_a + self.grid_b)[:, None, :], (directions * self.grid_a)[:, None, :], t[..., None])
+        mask_coords = None
+        if self.mask is not None:
+            mask_coords = torch.addcmul((origins * self.mask_a + self.mask_b)[:, None, :],
+                                        (directions * self.mask_a)[:, None, :], t[..., None])
+        return self._read(coords, mask_coords)

@@ -96,6 +96,30 @@ def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Flo
     return _BilinearSampleCPU.apply(plane, x, y)
 
 
+def trilinear_rows(table: Float[Tensor, "nodes c"], dims: Sequence[int], index: Float[Tensor, "n 3"]) -> Float[Tensor, "n c"]:
+    """Trilinear read of a channels-last node table (``dims`` = X, Y, Z nodes, x fastest) at index-space points
+    (x, y, z in node units): what grid_sample gives on the [1, C, Z, Y, X] tensor with corners aligned and
+    border padding, at 8 row gathers per point (grid_sample reads each channel's 8 nodes separately, C apart
+    in memory)."""
+    size = torch.tensor([int(n) for n in dims], device=index.device, dtype=index.dtype)
+    f = torch.minimum(index.clamp_min(0), size - 1)
+    # The last cell's upper corner is the border node itself (weight 1 at f == size - 1).
+    low = torch.minimum(f.floor(), (size - 2).clamp_min(0))
+    w = (f - low).to(table.dtype)
+    low = low.long()
+    x_step, y_step, z_step = (1 if dims[0] > 1 else 0), (dims[0] if dims[1] > 1 else 0), (dims[0] * dims[1] if dims[2] > 1 else 0)
+    base = (low[:, 2] * dims[1] + low[:, 1]) * dims[0] + low[:, 0]
+
+    def row(offset: int) -> Tensor:
+        return table.index_select(0, base + offset if offset else base)
+
+    wx, wy, wz = w[:, 0:1], w[:, 1:2], w[:, 2:3]
+    near_z = torch.lerp(torch.lerp(row(0), row(x_step), wx), torch.lerp(row(y_step), row(y_step + x_step), wx), wy)
+    far_z = torch.lerp(torch.lerp(row(z_step), row(z_step + x_step), wx),
+                       torch.lerp(row(z_step + y_step), row(z_step + y_step + x_step), wx), wy)
+    return torch.lerp(near_z, far_z, wz)
+
+
 class TensorVMGrid(nn.Module):
     """Three planes and three lines with per-plane component counts and a per-axis resolution.
 
@@ -144,6 +168,33 @@ class TensorVMGrid(nn.Module):
             line_feat = sample_plane(line, torch.zeros_like(mapped[:, line_axis]), mapped[:, line_axis])
             products.append((plane_feat * line_feat).T)
         return products
+
+    def node_sum(self) -> Float[Tensor, "z y x"]:
+        """Every plane times its line, summed over planes and components, at each grid node: [Z, Y, X].
+
+        A plane read bilinearly times its line read linearly is the trilinear interpolation of their outer
+        product on the grid's nodes (both with corners aligned and coordinates clamped to the box), and sums
+        commute with interpolation: a trilinear read of this tensor is ``sum(plane_line_products(...))`` summed
+        over components, to float rounding. A strided view ``[::s, ::s, ::s]`` is the same at stride s.
+        """
+        (p_xy, p_xz, p_yz), (l_z, l_y, l_x) = [p[0] for p in self.planes], [line[0, :, :, 0] for line in self.lines]
+        # PLANE_AXES: the XY plane is [c, y, x] (height y, width x), XZ is [c, z, x], YZ is [c, z, y].
+        nodes = torch.einsum("cyx,cz->zyx", p_xy, l_z)
+        nodes += torch.einsum("czx,cy->zyx", p_xz, l_y)
+        nodes += torch.einsum("czy,cx->zyx", p_yz, l_x)
+        return nodes
+
+    def node_features(self, basis: Float[Tensor, "k comps"]) -> Float[Tensor, "z y x k"]:
+        """``basis @ cat(plane_line_products)`` at every grid node, [Z, Y, X, K]: the appearance features on the
+        nodes, whose trilinear reads equal the planes' and lines' reads times the basis (``node_sum``'s argument:
+        the basis is linear)."""
+        (p_xy, p_xz, p_yz), (l_z, l_y, l_x) = [p[0] for p in self.planes], [line[0, :, :, 0] for line in self.lines]
+        b_xy, b_xz, b_yz = torch.split(basis, list(self.components), dim=1)
+        # The basis folded into the lines first ([k, c, line]): one contraction over c per plane.
+        nodes = torch.einsum("cyx,kcz->zyxk", p_xy, torch.einsum("kc,cz->kcz", b_xy, l_z))
+        nodes += torch.einsum("czx,kcy->zyxk", p_xz, torch.einsum("kc,cy->kcy", b_xz, l_y))
+        nodes += torch.einsum("czy,kcx->zyxk", p_yz, torch.einsum("kc,cx->kcx", b_yz, l_x))
+        return nodes
 
     @torch.no_grad()
     def resample(self, resolution: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:

@@ -120,46 +120,61 @@ def render_scale_inference(
     alive: the same samples (``march_steps``' rule), the same compositing (``composite_weights``: optical
     depth capped, exclusive transmittance from summed optical depths), the same colour threshold. A ray leaves
     the march when its next block starts past its segment's end or its transmittance drops below
-    ``termination`` (0 keeps every ray to its end: the dense result up to float rounding)."""
+    ``termination`` (0 keeps every ray to its end: the dense result up to float rounding).
+
+    Density comes from ``field.baked_density`` at every slot of a block (one dense read, no selection of the
+    occupied slots; ``field.occupied_density`` for a grid too large to bake); colour only at the slots whose weight passes the threshold, added per ray. The
+    state of the rays still marching is kept packed, and a ray's sums are written out when it leaves."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
-    rays = origins.shape[0]
+    rays, device = origins.shape[0], origins.device
     compute = torch.promote_types(origins.dtype, torch.float32)
-    t_near, t_far = segments.t_near.to(compute), segments.t_far.to(compute)
-    optical_sum = torch.zeros(rays, device=origins.device, dtype=compute)  # -log transmittance so far
-    accumulation = torch.zeros(rays, device=origins.device, dtype=compute)
-    weighted_t = torch.zeros(rays, device=origins.device, dtype=compute)
-    rgb = torch.zeros(rays, 3, device=origins.device, dtype=compute)
-    alive = torch.nonzero(segments.hit, as_tuple=True)[0]
     stop_optical = float("inf") if termination <= 0 else -math.log(termination)
     delta = step * distance_scale
-    for start in range(0, num_samples, block):
-        if alive.numel() == 0:
-            break
-        index = torch.arange(start, min(start + block, num_samples), device=origins.device, dtype=compute)
+    baked = field_.baked_density(scale)
+    # Per ray: accumulated weight, weighted t (depth), colour. Rays that miss the box keep zeros.
+    sums = torch.zeros(rays, 5, device=device, dtype=compute)
+    ids = torch.nonzero(segments.hit, as_tuple=True)[0]
+    o, d = origins[ids].to(compute), directions[ids].to(compute)
+    t_near, t_far = segments.t_near[ids].to(compute), segments.t_far[ids].to(compute)
+    # Each ray starts at its first slot that can hold density (the slots before add nothing to any sum).
+    slot = baked.first_slots(o, d, t_near, step, num_samples) if baked is not None else torch.zeros_like(ids)
+    marching = (slot < num_samples) & (t_near + (slot + 0.5) * step < t_far)
+    ids, o, d, t_near, t_far, slot = (x[marching] for x in (ids, o, d, t_near, t_far, slot))
+    optical_sum = torch.zeros(ids.numel(), device=device, dtype=compute)  # -log transmittance so far
+    ray_sums = torch.zeros(ids.numel(), 5, device=device, dtype=compute)
+    offsets = torch.arange(block, device=device)
+    while ids.numel() > 0:
+        index = slot[:, None] + offsets[None, :]
         # The same arithmetic as march_steps (offset 0.5 without jitter), so the positions are the oracle's.
-        t = t_near[alive, None] + (index[None, :] + 0.5) * step
-        valid = t < t_far[alive, None]
-        positions = origins[alive, None, :] + directions[alive, None, :] * t[..., None]
-        valid = valid & field_.inside(positions)
-        optical = torch.zeros_like(t)
-        if valid.any():
-            optical[valid] = (field_.density(positions[valid], scale).to(compute) * delta).clamp(0.0, MAX_OPTICAL_DEPTH)
-        weights, optical_after = transmittance_weights(optical, optical_sum[alive])
-        shade = weights > weight_threshold
-        if shade.any():
-            colors = torch.zeros(*t.shape, 3, device=t.device, dtype=compute)
-            dirs = directions[alive, None, :].expand_as(positions)
-            colors[shade] = field_.color(positions[shade], dirs[shade], scale).to(compute)
-            rgb[alive] += (weights[..., None] * colors).sum(dim=1)
-        accumulation[alive] += weights.sum(dim=-1)
-        weighted_t[alive] += (weights * t).sum(dim=-1)
-        optical_sum[alive] = optical_after
-        next_t = t_near[alive] + (start + block + 0.5) * step
-        alive = alive[(next_t < t_far[alive]) & (optical_sum[alive] < stop_optical)]
+        t = t_near[:, None] + (index.to(compute) + 0.5) * step
+        if baked is not None:
+            density = baked.along_rays(o, d, t).to(compute)
+        else:
+            positions = o[:, None, :] + d[:, None, :] * t[..., None]
+            density = field_.occupied_density(positions.view(-1, 3), scale).view_as(t).to(compute)
+        in_segment = (t < t_far[:, None]) & (index < num_samples)
+        optical = torch.where(in_segment, (density * delta).clamp(0.0, MAX_OPTICAL_DEPTH), 0.0)
+        weights, optical_sum = transmittance_weights(optical, optical_sum)
+        ray_sums[:, 0] += weights.sum(dim=-1)
+        ray_sums[:, 1] += (weights * t).sum(dim=-1)
+        rows, cols = torch.nonzero(weights > weight_threshold, as_tuple=True)
+        if rows.numel():
+            points = torch.addcmul(o[rows], d[rows], t[rows, cols, None])
+            colors = field_.inference_color(points, d[rows], scale).to(compute)
+            ray_sums[:, 2:].index_add_(0, rows, colors * weights[rows, cols, None])
+        slot = slot + block
+        marching = (slot < num_samples) & (t_near + (slot + 0.5) * step < t_far) & (optical_sum < stop_optical)
+        if not bool(marching.all()):
+            left = ~marching
+            sums[ids[left]] = ray_sums[left]
+            ids, o, d, t_near, t_far, slot, optical_sum, ray_sums = (
+                x[marching] for x in (ids, o, d, t_near, t_far, slot, optical_sum, ray_sums))
+    sums[ids] = ray_sums
+    accumulation, weighted_t, rgb = sums[:, 0], sums[:, 1], sums[:, 2:]
     eps = torch.finfo(compute).eps
     depth = weighted_t / (accumulation + eps)
-    depth = torch.maximum(torch.minimum(depth, t_far), t_near)
+    depth = torch.maximum(torch.minimum(depth, segments.t_far.to(compute)), segments.t_near.to(compute))
     rgb = rgb + (1.0 - accumulation[:, None]) * background.to(compute)
     return PixelRender(rgb, depth[:, None], accumulation[:, None])
 
