@@ -4,7 +4,7 @@ training marcher it replaces outside training: same pixels, far fewer density lo
 import pytest
 import torch
 
-from frugalnerf_ns.field.radiance_field import BakedDensity, FrugalNeRFField
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from frugalnerf_ns.model.rendering import render_scale, render_scale_inference
 from tests.helpers import tiny_model
@@ -68,13 +68,13 @@ def test_early_termination_changes_no_pixel_by_a_level_and_skips_lookups(scale, 
     segments = intersect_aabb(origins, directions, field.aabb, 0.0)
     background = torch.tensor([0.2, 0.5, 1.0])
     looked_up = []
-    along_rays = BakedDensity.along_rays
+    occupied_density = field.occupied_density
 
-    def counting(self, origins, directions, t):
-        looked_up.append(t.numel())
-        return along_rays(self, origins, directions, t)
+    def counting(positions, scale=0):
+        looked_up.append(positions.shape[0])
+        return occupied_density(positions, scale)
 
-    monkeypatch.setattr(BakedDensity, "along_rays", counting)
+    monkeypatch.setattr(field, "occupied_density", counting)
     with torch.no_grad():
         dense = render_scale(field, origins, directions, scale, background, segments, **SETTINGS, jitter=False)
         # Blocks of 8 of the ~70 slots a ray has here (a 24^3 grid); real grids give hundreds of slots per ray.

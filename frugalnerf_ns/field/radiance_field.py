@@ -225,12 +225,14 @@ class FrugalNeRFField(nn.Module):
 
     @torch.no_grad()
     def occupied_density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
-        """Density where ``inside`` holds and 0 elsewhere (outside training: ``baked_density``'s reads, or
-        ``inside`` and the planes for a grid too large to bake)."""
+        """Density where ``inside`` holds and 0 elsewhere, for rendering outside training: ``inside`` at every
+        point (the same rounding to the nearest mask voxel as the training marcher), the density read from
+        ``baked_density`` at every point (no selection of the occupied ones first), or, for a grid too large to
+        bake, from the planes at the occupied points."""
+        occupied = self.inside(positions)
         baked = self.baked_density(scale)
         if baked is not None:
-            return baked.at(positions)
-        occupied = self.inside(positions)
+            return torch.where(occupied, baked.read(positions), 0.0)
         density = torch.zeros(positions.shape[0], device=positions.device, dtype=positions.dtype)
         if occupied.any():
             density[occupied] = self.density(positions[occupied], scale).to(density.dtype)
@@ -307,13 +309,12 @@ class FrugalNeRFField(nn.Module):
 
 @dataclass(frozen=True)
 class BakedDensity:
-    """One scale's density as a dense [1, 1, Z, Y, X] tensor and the alpha mask as a [1, 1, Z, Y, X] volume,
-    with the affine maps from world points to their grid_sample coordinates (``coords = point * a + b``).
+    """One scale's density as a dense [1, 1, Z, Y, X] tensor (and the alpha mask as a volume, to bound where
+    density can be), with the affine maps from world points to their grid_sample coordinates (``p * a + b``).
 
     A plane read bilinearly times its line read linearly is a trilinear read of their outer product on the
     nodes, so one trilinear read of ``TensorVMGrid.node_sum`` gives the planes' density (to float rounding) at
-    a sixth of the reads; the mask is read at the nearest voxel as ``FrugalNeRFField.inside`` rounds it (half to
-    even), and reads 0 outside its box. Every point is read, occupied or not: no selection first.
+    a sixth of the reads.
     """
 
     grid: Tensor
@@ -337,17 +338,6 @@ class BakedDensity:
         else:
             mask, mask_a, mask_b = None, a, b
         return BakedDensity(grid, a, b, mask, mask_a, mask_b, field.density_activation, field.aabb.clone())
-
-    def _read(self, coords: Tensor, mask_coords: Optional[Tensor]) -> Tensor:
-        shape = coords.shape[:-1]
-        raw = F.grid_sample(self.grid, coords.reshape(1, 1, 1, -1, 3).to(self.grid.dtype), mode="bilinear",
-                            padding_mode="border", align_corners=True)
-        density = activate_density(raw.view(shape), self.activation)
-        if self.mask is not None and mask_coords is not None:
-            occupied = F.grid_sample(self.mask, mask_coords.reshape(1, 1, 1, -1, 3).to(self.mask.dtype), mode="nearest",
-                                     padding_mode="zeros", align_corners=True)
-            density = density * occupied.view(shape)
-        return density
 
     def _dilated_occupancy(self, which: str, radius: Tuple[int, int, int]) -> Tensor:
         """Flat bool volume, dilated by ``radius`` entries (z, y, x): ``"cells"``, the density grid's cells
@@ -419,20 +409,8 @@ class BakedDensity:
         first = torch.where(hit.any(dim=-1), hit.to(torch.uint8).argmax(dim=-1), torch.full_like(t_near, groups, dtype=torch.long))
         return (first * group).clamp(max=num_samples)
 
-    def at(self, positions: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
-        """Density at world points, 0 outside the box or the mask."""
-        in_box = ((positions >= self.box[0]) & (positions <= self.box[1])).all(dim=-1)
-        density = self._read(positions * self.grid_a + self.grid_b, positions * self.mask_a + self.mask_b)
-        return torch.where(in_box, density, torch.zeros_like(density))
-
-    def along_rays(
-        self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], t: Float[Tensor, "rays samples"]
-    ) -> Float[Tensor, "rays samples"]:
-        """Density at origins + t * directions, 0 outside the mask; the caller keeps t inside the rays' box
-        segments (no box test here). The coordinates are affine in t: no world points are formed."""
-        coords = torch.addcmul((origins * self.grid_a + self.grid_b)[:, None, :], (directions * self.grid_a)[:, None, :], t[..., None])
-        mask_coords = None
-        if self.mask is not None:
-            mask_coords = torch.addcmul((origins * self.mask_a + self.mask_b)[:, None, :],
-                                        (directions * self.mask_a)[:, None, :], t[..., None])
-        return self._read(coords, mask_coords)
+    def read(self, positions: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
+        """Density at world points from the dense tensor (trilinear, border-clamped; no mask, no box test)."""
+        coords = (positions * self.grid_a + self.grid_b).view(1, 1, 1, -1, 3).to(self.grid.dtype)
+        raw = F.grid_sample(self.grid, coords, mode="bilinear", padding_mode="border", align_corners=True)
+        return activate_density(raw.view(-1), self.activation)

@@ -122,8 +122,9 @@ def render_scale_inference(
     the march when its next block starts past its segment's end or its transmittance drops below
     ``termination`` (0 keeps every ray to its end: the dense result up to float rounding).
 
-    Density comes from ``field.baked_density`` at every slot of a block (one dense read, no selection of the
-    occupied slots; ``field.occupied_density`` for a grid too large to bake); colour only at the slots whose weight passes the threshold, added per ray. The
+    Density comes from ``field.occupied_density`` at every slot of a block (the baked grid: one dense read,
+    no selection of the occupied slots); each ray starts at its first slot that can hold density
+    (``BakedDensity.first_slots``); colour only at the slots whose weight passes the threshold, added per ray. The
     state of the rays still marching is kept packed, and a ray's sums are written out when it leaves."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
@@ -148,11 +149,8 @@ def render_scale_inference(
         index = slot[:, None] + offsets[None, :]
         # The same arithmetic as march_steps (offset 0.5 without jitter), so the positions are the oracle's.
         t = t_near[:, None] + (index.to(compute) + 0.5) * step
-        if baked is not None:
-            density = baked.along_rays(o, d, t).to(compute)
-        else:
-            positions = o[:, None, :] + d[:, None, :] * t[..., None]
-            density = field_.occupied_density(positions.view(-1, 3), scale).view_as(t).to(compute)
+        positions = o[:, None, :] + d[:, None, :] * t[..., None]
+        density = field_.occupied_density(positions.view(-1, 3), scale).view_as(t).to(compute)
         in_segment = (t < t_far[:, None]) & (index < num_samples)
         optical = torch.where(in_segment, (density * delta).clamp(0.0, MAX_OPTICAL_DEPTH), 0.0)
         weights, optical_sum = transmittance_weights(optical, optical_sum)
@@ -160,8 +158,7 @@ def render_scale_inference(
         ray_sums[:, 1] += (weights * t).sum(dim=-1)
         rows, cols = torch.nonzero(weights > weight_threshold, as_tuple=True)
         if rows.numel():
-            points = torch.addcmul(o[rows], d[rows], t[rows, cols, None])
-            colors = field_.inference_color(points, d[rows], scale).to(compute)
+            colors = field_.inference_color(positions[rows, cols], d[rows], scale).to(compute)
             ray_sums[:, 2:].index_add_(0, rows, colors * weights[rows, cols, None])
         slot = slot + block
         marching = (slot < num_samples) & (t_near + (slot + 0.5) * step < t_far) & (optical_sum < stop_optical)
