@@ -108,8 +108,7 @@ class FrugalNeRFField(nn.Module):
         # buffer so checkpoints carry it; an empty (0,0,0) tensor stands for "no mask yet".
         self.register_buffer("alpha_mask", torch.zeros(0, 0, 0, dtype=torch.bool))
         self.register_buffer("alpha_mask_aabb", aabb.clone().float())
-        # The density grid baked into one dense tensor per stride and the mask as a volume
-        # (``occupied_density``), with the versions of what they were baked from.
+        # What ``baked_density`` and ``baked_features`` built, keyed on the versions of what they read.
         self._baked_cache: Tuple[tuple, Dict] = ((), {})
         self._features_cache: Tuple[tuple, Dict] = ((), {})
 
@@ -160,8 +159,9 @@ class FrugalNeRFField(nn.Module):
         k = torch.tensor(k, device=a.device, dtype=a.dtype)
         return a * k, torch.where(k > 0, (b + 1.0) * k - 1.0, torch.zeros_like(b))
 
-    def _baked_key(self) -> tuple:
-        tensors = list(self.density_grid.planes) + list(self.density_grid.lines) + [self.alpha_mask, self.aabb]
+    @staticmethod
+    def _versions(tensors: Sequence[Tensor]) -> tuple:
+        """What identifies the contents of these tensors: storage, in-place version, shape, dtype, device."""
         return tuple((t.data_ptr(), t._version, tuple(t.shape), t.dtype, t.device) for t in tensors)
 
     @torch.no_grad()
@@ -174,7 +174,7 @@ class FrugalNeRFField(nn.Module):
         if math.prod(res) > BAKED_DENSITY_MAX_ENTRIES:
             return None
         key, baked = self._baked_cache
-        current = self._baked_key()
+        current = self._versions([*self.density_grid.planes, *self.density_grid.lines, self.alpha_mask, self.aabb])
         if key != current:
             baked = {1: self.density_grid.node_sum()[None, None]}
             self._baked_cache = (current, baked)
@@ -195,8 +195,7 @@ class FrugalNeRFField(nn.Module):
         basis = self.appearance_basis.weight
         if math.prod(res) * basis.shape[0] > BAKED_FEATURES_MAX_ENTRIES:
             return None
-        tensors = list(self.appearance_grid.planes) + list(self.appearance_grid.lines) + [basis, self.aabb]
-        current = tuple((t.data_ptr(), t._version, tuple(t.shape), t.dtype, t.device) for t in tensors)
+        current = self._versions([*self.appearance_grid.planes, *self.appearance_grid.lines, basis, self.aabb])
         key, baked = self._features_cache
         if key != current:
             baked = {1: self.appearance_grid.node_features(basis)}
@@ -324,7 +323,6 @@ class BakedDensity:
     mask_a: Tensor
     mask_b: Tensor
     activation: DensityActivation
-    box: Tensor
     _dilated: Dict[tuple, Tensor] = dataclass_field(default_factory=dict, compare=False, repr=False)
 
     @staticmethod
@@ -337,7 +335,7 @@ class BakedDensity:
             mask_b = -box[0] * mask_a - 1.0
         else:
             mask, mask_a, mask_b = None, a, b
-        return BakedDensity(grid, a, b, mask, mask_a, mask_b, field.density_activation, field.aabb.clone())
+        return BakedDensity(grid, a, b, mask, mask_a, mask_b, field.density_activation)
 
     def _dilated_occupancy(self, which: str, radius: Tuple[int, int, int]) -> Tensor:
         """Flat bool volume, dilated by ``radius`` entries (z, y, x): ``"cells"``, the density grid's cells
@@ -385,28 +383,30 @@ class BakedDensity:
         group's slots (and their nearest mask voxels) lie from it: the density grid's cells that can be
         non-zero (ReLU fields), or the alpha mask's occupied voxels (softplus)."""
         device, dtype = origins.device, origins.dtype
+        start = torch.zeros(origins.shape[0], dtype=torch.long, device=device)
+        # One conservative bound: a ReLU field's zero cells (tighter than the mask, which is dilated); softplus is
+        # never 0, so there only the mask can say empty.
+        if self.activation == "relu":
+            which, volume, a, b, cell = "cells", self.grid, self.grid_a, self.grid_b, 1
+        elif self.mask is not None:
+            which, volume, a, b, cell = "mask", self.mask, self.mask_a, self.mask_b, 0
+        else:
+            return start
+        nodes = torch.tensor(volume.shape[2:][::-1], device=device, dtype=dtype)  # x, y, z
+        if bool((nodes < 2).any()):
+            return start  # a one-entry axis: no cells to bound (the lower scales of a tiny grid)
         groups = -(-num_samples // group)
         centre = torch.arange(groups, device=device, dtype=dtype) * group + 0.5 * group
         t = t_near[:, None] + centre[None, :] * step
-        hit = torch.ones(t.shape, dtype=torch.bool, device=device)
-        # One bound suffices, each alone being conservative: a ReLU field's zero cells (tighter than the mask,
-        # which is dilated); softplus is never 0, so there only the mask can say empty.
-        volumes = [("cells", self.grid, self.grid_a, self.grid_b, 1)] if self.activation == "relu" else []
-        if self.mask is not None and not volumes:
-            volumes.append(("mask", self.mask, self.mask_a, self.mask_b, 0))
-        for which, volume, a, b, cell in volumes:
-            nodes = torch.tensor(volume.shape[2:][::-1], device=device, dtype=dtype)  # x, y, z
-            if bool((nodes < 2).any()):
-                continue  # a one-entry axis: no cells to bound (the lower scales of a tiny grid)
-            to_index = 0.5 * (nodes - 1)  # grid_sample's corner-aligned coordinates in [-1, 1] to entries
-            f_origin, f_direction = (origins * a + b + 1.0) * to_index, directions * a * to_index
-            # How far (in entries) a group's slots lie from its centre, plus the half entry between a point and
-            # its nearest node and one for rounding.
-            reach = (0.5 * group * step) * f_direction.abs().amax(dim=0) + (0.0 if cell else 0.5)
-            radius = tuple(int(r) + 1 for r in reach.ceil().tolist()[::-1])
-            occupancy = self._dilated_occupancy(which, radius)  # type: ignore[arg-type]
-            hit &= self._group_hits(occupancy, nodes - cell, f_origin, f_direction, t, rounding=not cell)
-        first = torch.where(hit.any(dim=-1), hit.to(torch.uint8).argmax(dim=-1), torch.full_like(t_near, groups, dtype=torch.long))
+        to_index = 0.5 * (nodes - 1)  # grid_sample's corner-aligned coordinates in [-1, 1] to entries
+        f_origin, f_direction = (origins * a + b + 1.0) * to_index, directions * a * to_index
+        # How far (in entries) a group's slots lie from its centre, plus the half entry between a point and its
+        # nearest node and one for rounding.
+        reach = (0.5 * group * step) * f_direction.abs().amax(dim=0) + (0.0 if cell else 0.5)
+        radius = tuple(int(r) + 1 for r in reach.ceil().tolist()[::-1])
+        occupancy = self._dilated_occupancy(which, radius)  # type: ignore[arg-type]
+        hit = self._group_hits(occupancy, nodes - cell, f_origin, f_direction, t, rounding=not cell)
+        first = torch.where(hit.any(dim=-1), hit.to(torch.uint8).argmax(dim=-1), torch.full_like(start, groups))
         return (first * group).clamp(max=num_samples)
 
     def read(self, positions: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
