@@ -84,6 +84,51 @@ def test_sparse_depth_loss_reads_the_trailing_rays_at_every_scale(model_and_batc
         model.config.sparse_depth_weight = 0.5
 
 
+def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(model_and_batch):
+    import copy
+
+    from frugalnerf_ns.model.batch import RAY_GROUP
+
+    model, bundle, batch = model_and_batch
+
+    def step(ray_bundle):
+        torch.manual_seed(3)  # the same jitter for both renders
+        outputs = model(ray_bundle)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        model.zero_grad()
+        sum(loss_dict.values()).backward()
+        grads = {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+        return outputs["step"], {k: float(v) for k, v in loss_dict.items()}, grads
+
+    assert RAY_GROUP in bundle.metadata
+    ungrouped = copy.copy(bundle)
+    ungrouped.metadata = {k: v for k, v in bundle.metadata.items() if k != RAY_GROUP}
+    # The untrained field's weights are mostly below the shading threshold: shade every sample with weight.
+    threshold, model.config.weight_threshold = model.config.weight_threshold, 0.0
+    try:
+        skipped, skipped_losses, skipped_grads = step(bundle)
+        every, every_losses, every_grads = step(ungrouped)
+    finally:
+        model.config.weight_threshold = threshold
+    novel, sparse = batch.novel, batch.sparse
+    assert sparse.stop > sparse.start and novel.stop > novel.start
+    for scale, (fast, full) in enumerate(zip(skipped.scales, every.scales)):
+        # Without the groups the novel and sparse-depth rays are shaded at every scale (the test can fail);
+        # with them the novel rays only at the full scale, the sparse-depth rays at none.
+        assert full.shaded[novel].any() and full.shaded[sparse].any()
+        assert fast.shaded[novel].any() == (scale == 0)
+        assert not fast.shaded[sparse].any()
+        assert torch.equal(fast.shaded[batch.train], full.shaded[batch.train])
+        assert torch.equal(fast.weights, full.weights)
+    assert set(skipped_losses) == set(every_losses) >= {"rgb_loss", "geo_loss", "sparse_depth", "depth_smoothness"}
+    for name, value in every_losses.items():
+        assert skipped_losses[name] == pytest.approx(value, rel=1e-6, abs=1e-9), name
+    assert set(skipped_grads) == set(every_grads)
+    for name, grad in every_grads.items():
+        scale = float(grad.abs().max()) or 1.0
+        assert torch.allclose(skipped_grads[name], grad, rtol=1e-4, atol=1e-5 * scale), name
+
+
 def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):
     model, bundle, batch = model_and_batch
     model.config.geo_weight = 0.0

@@ -40,7 +40,7 @@ from frugalnerf_ns.data.training_views import (
 )
 from frugalnerf_ns.geometry.novel_views import nearest_other_view, spiral_focus_depth
 from frugalnerf_ns.geometry.scene_analysis import CameraLayout, SceneType, uninformative_view_notes
-from frugalnerf_ns.model.batch import EvalBatch, TrainBatch, concatenate_ray_bundles
+from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch, concatenate_ray_bundles, ray_groups
 from frugalnerf_ns.scoring.metrics import composite
 
 
@@ -273,6 +273,8 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         if self.sparse is not None:
             sparse_bundle, batch.sparse_depth = self._sparse_rays()
             bundle = concatenate_ray_bundles(bundle, sparse_bundle)
+        num_sparse = 0 if batch.sparse_depth is None else int(batch.sparse_depth.shape[0])
+        bundle.metadata[RAY_GROUP] = ray_groups(batch.num_train, batch.num_novel, num_sparse, self.device)
         return bundle, batch
 
     def next_eval(self, step: int) -> Tuple[RayBundle, EvalBatch]:

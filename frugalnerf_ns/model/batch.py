@@ -5,7 +5,8 @@ slice of each:
 - ``train``: training pixels as k x k patches (patch-major), with their colours;
 - ``novel``: novel-view rays in 2x2 patches from the spiral poses (geometric adaptation, depth smoothness);
 - ``sparse``: rays through triangulated points, with the depth each should render (L_sd).
-The training views every warp compares with are not in the batch: the model holds them once
+The bundle's metadata names each ray's group (``RAY_GROUP``: ``ray_groups``), so that rendering can skip
+what no loss reads (``objective.color_read``). The training views every warp compares with are not in the batch: the model holds them once
 (``FrugalNeRFModel.set_reference_views``, called by the pipeline at set-up).
 
 An eval batch (nerfstudio's eval loss, every ``steps-per-eval-batch``) is single pixels of a test image.
@@ -20,6 +21,18 @@ import torch
 from jaxtyping import Float, Int
 from nerfstudio.cameras.rays import RayBundle
 from torch import Tensor
+
+
+#: ``RayBundle.metadata`` key of a training bundle: each ray's group, [rays, 1] (TRAIN_RAYS, NOVEL_RAYS, SPARSE_RAYS).
+RAY_GROUP = "frugalnerf_ray_group"
+TRAIN_RAYS, NOVEL_RAYS, SPARSE_RAYS = 0, 1, 2
+
+
+def ray_groups(num_train: int, num_novel: int, num_sparse: int, device: torch.device | str = "cpu") -> Int[Tensor, "rays 1"]:
+    """Each ray's group in a training bundle's order: training, then novel, then sparse-depth rays."""
+    counts = torch.tensor([num_train, num_novel, num_sparse], device=device)
+    groups = torch.tensor([TRAIN_RAYS, NOVEL_RAYS, SPARSE_RAYS], dtype=torch.int8, device=device)
+    return groups.repeat_interleave(counts)[:, None]
 
 
 @dataclass

@@ -26,7 +26,7 @@ from torch.nn import Parameter
 from torch.profiler import record_function
 
 from frugalnerf_ns.model import objective
-from frugalnerf_ns.model.batch import EvalBatch, TrainBatch
+from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
     ScaleFractionHistory,
@@ -201,11 +201,17 @@ class FrugalNeRFModel(Model):
         # Without gradients outside training (ns-eval, ns-render, the viewer) only pixels are wanted: the
         # blocked marcher with early termination renders them; training keeps every sample for its losses.
         inference = not self.training and not torch.is_grad_enabled() and self.config.fast_inference
+        # A training bundle names each ray's group: colours that no loss reads are not shaded.
+        groups = ray_bundle.metadata.get(RAY_GROUP) if self.training and ray_bundle.metadata else None
         for scale in range(self._scales_to_render()):
             with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                 args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
                         cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
-                render = render_scale_inference(*args) if inference else render_scale(*args, jitter=self.training)
+                if inference:
+                    render = render_scale_inference(*args)
+                else:
+                    shade = None if groups is None else objective.color_read(cfg, groups.reshape(-1), scale, self.occlusion_active)
+                    render = render_scale(*args, jitter=self.training, shade_rays=shade)
             depth = render.depth[:, 0]
             if ndc_rays is not None:
                 # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).

@@ -12,12 +12,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Dict, List, NamedTuple, Optional
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 from torch.profiler import record_function
 
 from frugalnerf_ns.model import losses
-from frugalnerf_ns.model.batch import EvalBatch, TrainBatch
+from frugalnerf_ns.model.batch import SPARSE_RAYS, TRAIN_RAYS, EvalBatch, TrainBatch
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import AdaptationResult, cross_scale_geometric_adaptation
 from frugalnerf_ns.scoring.metrics import composite
@@ -53,6 +53,23 @@ def on_background(
 def scale_color_weights(cfg: "FrugalNeRFSettings", num_scales: int, decay: float) -> List[float]:
     """Eq. 1's per-scale weights: the full scale's, then each lower scale's (decaying with the schedule)."""
     return [cfg.full_scale_color_weight] + [cfg.lower_scale_color_weight * decay] * (num_scales - 1)
+
+
+def color_read(
+    cfg: "FrugalNeRFSettings", groups: Int[Tensor, " rays"], scale: int, occlusion_active: bool
+) -> Optional[Bool[Tensor, " rays"]]:
+    """The rays of a training bundle whose colour at ``scale`` a term of ``training_losses`` reads (None: all).
+
+    Eq. 1 reads the training rays at every scale; Eq. 6 warps the novel rays' full-scale render (detached);
+    the sparse-depth rays and the novel rays' lower scales feed only depth terms (L_sd, Eq. 7's depths, depth
+    smoothness), so their colours need not be shaded: skipping them changes no loss and no gradient. The
+    occlusion loss with its background prior reads every ray's sample colours.
+    """
+    if occlusion_active and cfg.occlusion_weight > 0 and cfg.occlusion_background_prior:
+        return None
+    if scale == 0:
+        return groups != SPARSE_RAYS
+    return groups == TRAIN_RAYS
 
 
 def training_losses(

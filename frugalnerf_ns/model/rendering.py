@@ -68,8 +68,12 @@ def render_scale(
     max_samples_per_ray: int,
     weight_threshold: float,
     jitter: bool,
+    shade_rays: Optional[Bool[Tensor, " rays"]] = None,
 ) -> ScaleRender:
-    """March one scale: fixed-step samples in the box, density where occupied, colour where it matters."""
+    """March one scale: fixed-step samples in the box, density where occupied, colour where it matters.
+
+    ``shade_rays`` (None: all) limits the colour to the rays whose colour is read; the others' ``rgb`` is the
+    background's share alone and their ``colors`` are zero."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
     t, valid = march_steps(segments, step, num_samples, jitter=jitter)
@@ -81,6 +85,8 @@ def render_scale(
     comp = composite_weights(densities, t, step, distance_scale, segments.t_near, segments.t_far)
     colors = torch.zeros(*t.shape, 3, device=t.device, dtype=t.dtype)
     shade = comp.weights > weight_threshold
+    if shade_rays is not None:
+        shade = shade & shade_rays[:, None]
     if shade.any():
         dirs = directions[:, None, :].expand_as(positions)
         colors[shade] = field_.color(positions[shade], dirs[shade], scale)
