@@ -85,10 +85,10 @@ def test_early_termination_changes_no_pixel_by_a_level_and_skips_lookups(scale, 
     # The slab makes rays opaque half-way through the box: the slots behind it are never looked up (at the
     # full scale; the lower scales' few, long steps cross the box in two or three blocks), nor those of rays
     # that miss the box or have left it.
-    dense_slots = dense.t.numel()
-    assert sum(looked_up) <= dense_slots
+    # (The oracle marches only the slots some ray can reach, dense.t; the rule gives every ray dense.slots.)
+    assert sum(looked_up) <= dense.t.shape[0] * dense.slots
     if scale == 0:
-        assert sum(looked_up) < 0.3 * dense_slots
+        assert sum(looked_up) < 0.3 * dense.t.numel()
 
 
 def test_half_precision_inputs_composite_in_float32():
@@ -204,3 +204,39 @@ def test_rays_start_at_their_first_slot_that_can_hold_density_and_render_the_sam
         assert torch.allclose(fast.rgb, dense.rgb, atol=2e-6)
         assert torch.allclose(fast.accumulation, dense.accumulation, atol=2e-6)
         assert torch.allclose(fast.depth, dense.depth, atol=1e-5)
+
+
+@pytest.mark.parametrize("scale", [0, 2])
+def test_training_marcher_drops_only_slots_no_ray_reaches(scale, monkeypatch):
+    from frugalnerf_ns.model import losses, rendering
+
+    field = opaque_field(mask=True)
+    origins, directions = rays()
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    background = torch.tensor([0.2, 0.5, 1.0])
+
+    def render_and_grads():
+        torch.manual_seed(5)  # the same jitter for both
+        render = render_scale(field, origins, directions, scale, background, segments, **SETTINGS, jitter=True)
+        step = field.sample_step(scale, SETTINGS["step_ratio"])
+        occlusion = losses.occlusion_loss(render.densities, render.colors, 4, 8, shaded=render.shaded, num_slots=render.slots)
+        distortion = losses.distortion_loss(render.weights, render.t, step)
+        field.zero_grad()
+        (render.rgb.sum() + render.depth.sum() + occlusion + distortion).backward()
+        grads = [p.grad.clone() for p in field.parameters() if p.grad is not None]
+        return render, float(occlusion), float(distortion), grads
+
+    cut, cut_occlusion, cut_distortion, cut_grads = render_and_grads()
+    monkeypatch.setattr(rendering, "reachable_slots", lambda segments, step, num_samples: num_samples)
+    full, full_occlusion, full_distortion, full_grads = render_and_grads()
+    kept = cut.t.shape[1]
+    assert cut.slots == full.slots == full.t.shape[1] > 1.3 * kept  # the box's diagonal is longer than any ray's path
+    assert (full.weights[:, kept:] == 0).all() and (full.densities[:, kept:] == 0).all()
+    assert torch.allclose(cut.weights, full.weights[:, :kept], rtol=1e-6, atol=1e-7)
+    for name in ("rgb", "depth", "accumulation"):
+        assert torch.allclose(getattr(cut, name), getattr(full, name), rtol=1e-6, atol=1e-6), name
+    assert full_occlusion > 0 and cut_occlusion == pytest.approx(full_occlusion, rel=1e-6)
+    assert full_distortion > 0 and cut_distortion == pytest.approx(full_distortion, rel=1e-5)
+    assert len(cut_grads) == len(full_grads) > 0
+    for a, b in zip(cut_grads, full_grads):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max() or 1.0))

@@ -105,6 +105,7 @@ def occlusion_loss(
     num_background_samples: int,
     shaded: Optional[Tensor] = None,
     background_tolerance: float = 0.01,
+    num_slots: Optional[int] = None,
 ) -> Tensor:
     """Occlusion regulariser (FreeNeRF; reference code ``cal_occ_loss``): mean density of the first
     ``num_near_samples`` samples of every ray, where few-shot fields grow floaters hugging the cameras.
@@ -113,6 +114,8 @@ def occlusion_loss(
     ``num_background_samples`` whose colour is black or white (mean within ``background_tolerance`` of 0 or
     1) are penalised too: there the background colour is explained by density in front of the object.
     ``shaded`` marks samples whose colour was evaluated; the others never count as background.
+    ``num_slots`` (default: the tensors' sample count) is the slot count the mean is taken over, when the
+    tensors hold only the first slots of each ray (the rest of zero density).
     """
     num_samples = densities.shape[-1]
     index = torch.arange(num_samples, device=densities.device)
@@ -123,7 +126,8 @@ def occlusion_loss(
         if shaded is not None:
             background = background & shaded
         mask = mask | (background & (index < num_background_samples))
-    return (densities * mask.to(densities.dtype)).mean()
+    total = (densities * mask.to(densities.dtype)).sum()
+    return total / (densities.shape[0] * (num_samples if num_slots is None else max(num_slots, num_samples)))
 
 
 def loss_weight_schedule(step: int, total_steps: int, ratio: float) -> float:

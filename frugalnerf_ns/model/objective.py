@@ -162,6 +162,7 @@ def sample_regularizers(
                 max(1, cfg.occlusion_near_samples // stride),
                 max(1, cfg.occlusion_background_samples // stride),
                 shaded=scale_render.shaded,
+                num_slots=scale_render.slots,
             )
             _add(terms, "occlusion", cfg.occlusion_weight * decay * factor * occ)
     return terms

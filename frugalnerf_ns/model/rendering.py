@@ -46,6 +46,9 @@ class ScaleRender(NamedTuple):
     colors: Float[Tensor, "rays samples 3"]
     shaded: Bool[Tensor, "rays samples"]
     """Samples whose colour was evaluated (compositing weight above the threshold)."""
+    slots: int
+    """Sample slots per ray of the scale's rule (``samples_per_ray``); the tensors keep only the first ones
+    that some ray of the batch can reach (``reachable_slots``): the rest hold zero weight for every ray."""
 
 
 def samples_per_ray(field_: FrugalNeRFField, scale: int, step: float, max_samples_per_ray: int) -> int:
@@ -54,6 +57,16 @@ def samples_per_ray(field_: FrugalNeRFField, scale: int, step: float, max_sample
     diagonal = float((field_.aabb[1] - field_.aabb[0]).norm())
     limit = max(1, max_samples_per_ray // field_.stride(scale))
     return max(1, min(limit, int(diagonal / step) + 1))
+
+
+def reachable_slots(segments: RaySegments, step: float, num_samples: int) -> int:
+    """How many of ``num_samples`` slots some ray's segment can reach: slot i starts at t_near + i * step
+    (``march_steps``), so past floor(longest segment / step) every slot of every ray lies beyond its far end
+    (one slot more than that is kept against rounding). Dropping those changes no weight, depth or colour."""
+    if segments.t_near.numel() == 0:
+        return min(num_samples, 1)
+    longest = float((segments.t_far - segments.t_near).max())
+    return max(1, min(num_samples, int(longest / step) + 2))
 
 
 def render_scale(
@@ -76,7 +89,9 @@ def render_scale(
     background's share alone and their ``colors`` are zero."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
-    t, valid = march_steps(segments, step, num_samples, jitter=jitter)
+    # Slots past every ray's exit would hold zero weight (about half of them in NDC scenes, where the box's
+    # diagonal is much longer than a ray's path through it): they are not marched.
+    t, valid = march_steps(segments, step, reachable_slots(segments, step, num_samples), jitter=jitter)
     positions = origins[:, None, :] + directions[:, None, :] * t[..., None]
     valid = valid & field_.inside(positions)
     densities = torch.zeros_like(t)
@@ -91,7 +106,7 @@ def render_scale(
         dirs = directions[:, None, :].expand_as(positions)
         colors[shade] = field_.color(positions[shade], dirs[shade], scale)
     rgb = composite_rgb(comp.weights, colors, background)
-    return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade)
+    return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade, num_samples)
 
 
 TERMINATION_TRANSMITTANCE = 1e-4
