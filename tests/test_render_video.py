@@ -97,3 +97,27 @@ def test_render_benchmark_times_every_row_on_one_run(trained_run, tmp_path, caps
     assert records[0]["psnr_inference_vs_training_marcher"] > 50 and records[0]["max_pixel_difference"] < 1 / 255
     with pytest.raises(SystemExit, match="no .*rendering.py"):
         render.main([str(run_dir / "config.yml"), "--before", str(tmp_path)])
+
+
+def test_step_benchmark_times_this_tree_beside_another_in_child_processes(trained_run, tmp_path, capsys):
+    import json
+
+    import torch
+
+    from frugalnerf_ns.bench import step_time
+
+    _, run_dir = trained_run
+    out = tmp_path / "step.json"
+    # --before with this very tree: both children must import the package from the tree they were given.
+    tree = Path(step_time.__file__).resolve().parents[2]
+    step_time.main([str(run_dir / "config.yml"), "--before", str(tree), "--steps", "2", "--warmup", "1",
+                    "--rounds", "1", "--out", str(out)])
+    rows = json.loads(out.read_text())["rows"]
+    checkpoint = torch.load(next((run_dir / "nerfstudio_models").glob("*.ckpt")), map_location="cpu", weights_only=False)
+    grid = checkpoint["pipeline"]["_model.field.density_grid.resolution"].tolist()
+    assert [r["tree"] for r in rows] == ["before", "now"] and all(r["path"] == str(tree) for r in rows)
+    assert all(r["grid"] == grid and len(r["round_medians"]) == 1 and r["median_s_per_step"] > 0 for r in rows)
+    assert all(r["peak_rss_mib"] > 100 for r in rows) and rows[1]["speedup_of_now"] == 1.0
+    assert "| before (" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no frugalnerf_ns package"):
+        step_time.main([str(run_dir / "config.yml"), "--before", str(tmp_path)])

@@ -19,6 +19,7 @@ SUBCOMMANDS = {
     "viewer": ("viewer", "seconds per viewer frame and moving preview of trained runs, per render mode"),
     "startup": ("startup", "start-up time against the number of training views: parsing, images, SIFT, matching, triangulation"),
     "model-size": ("model_size", "checkpoint size, parameters and first-step memory per preset at its final grid"),
+    "step": ("step_time", "seconds per training step of a trained run, this source tree beside an earlier one"),
     "profile": ("profile_step", "where a training step's time goes (torch.profiler stages and operators)"),
     "gpu-check": ("gpu_check", "a CUDA machine end to end: presets, the paper run, speed, grid sample, memory, tcnn"),
 }
