@@ -53,6 +53,26 @@ def test_strided_coordinates_read_the_same_world_point():
     assert coords_for_stride(torch.tensor(-1.0), 37, 4) == -1.0
 
 
+def test_stretched_lower_scales_read_their_view_as_a_grid_over_the_box():
+    torch.manual_seed(0)
+    coords = torch.cat([torch.rand(300, 3) * 2 - 1, torch.ones(1, 3), -torch.ones(1, 3)])
+    for res, spans in (((38, 22, 30), False), ((37, 21, 29), True)):  # 37 = 4 * 9 + 1: the 1/4 view spans the box
+        grid = TensorVMGrid(res, (3, 2, 2))
+        stride = 4
+        stretched = grid.plane_line_products(coords, stride=stride, stretched=True)
+        aligned = grid.plane_line_products(coords, stride=stride)
+        planes, lines = grid.scale_views(stride)
+        x, y, z = coords.unbind(-1)
+        # The reference: every view read as a contiguous tensor of its own, its corners on the box's faces.
+        for product, plane, line, (a, b), axis in zip(stretched, planes, lines, ((x, y), (x, z), (y, z)), (z, y, x)):
+            plane_read = F.grid_sample(plane.contiguous(), torch.stack([a, b], -1).view(1, -1, 1, 2), align_corners=True)
+            line_read = F.grid_sample(line.contiguous(), torch.stack([torch.zeros_like(axis), axis], -1).view(1, -1, 1, 2),
+                                      align_corners=True)
+            torch.testing.assert_close(product, (plane_read * line_read).view(plane.shape[1], -1).T)
+        differ = max(float((s_ - a_).abs().max()) for s_, a_ in zip(stretched, aligned))
+        assert (differ < 1e-6) == spans, (res, differ)
+
+
 def test_model_size_does_not_grow_with_the_number_of_scales():
     sizes = []
     for lower in range(4):
@@ -234,14 +254,15 @@ def density_where_inside(field, points, scale=0):
 
 
 # The mask multiplies the activated density, whichever the activation: one masked case suffices.
-@pytest.mark.parametrize("activation, mask", [("relu", False), ("softplus", False), ("relu", True)])
-def test_baked_density_reads_what_the_planes_and_lines_give_where_occupied_at_every_scale(activation, mask):
+@pytest.mark.parametrize("activation, mask, reading", [("relu", False, "aligned"), ("softplus", False, "aligned"),
+                                                      ("relu", True, "aligned"), ("relu", False, "stretched")])
+def test_baked_density_reads_what_the_planes_and_lines_give_where_occupied_at_every_scale(activation, mask, reading):
     # Resolutions that are not 4k+1 or 16k+1: the lower scales' views stop short of the far faces there, and
     # points beyond read the border entry in both paths. Points reach outside the box (density 0 there).
     torch.manual_seed(0)
     aabb = torch.tensor([[-1.0, -0.5, -2.0], [1.5, 0.5, 1.0]])
     field = FrugalNeRFField(aabb, (23, 10, 30), density_components=(5, 3, 2), appearance_components=(2, 2, 2),
-                            density_activation=activation, mlp_implementation="torch")
+                            density_activation=activation, mlp_implementation="torch", lower_scale_reading=reading)
     with torch.no_grad():
         if mask:  # empty one corner, so the mask leaves it out; then shrink, so the mask's box is the larger
             for plane in field.density_grid.planes:
@@ -256,6 +277,10 @@ def test_baked_density_reads_what_the_planes_and_lines_give_where_occupied_at_ev
             baked = field.occupied_density(points, scale)
             assert baked.shape == reference.shape
             assert torch.allclose(baked, reference, atol=1e-5, rtol=1e-5), (scale, (baked - reference).abs().max())
+            # The colour path outside training reads the baked appearance features at the same points.
+            directions = torch.nn.functional.normalize(torch.randn(points.shape[0], 3), dim=-1)
+            torch.testing.assert_close(field.inference_color(points, directions, scale), field.color(points, directions, scale),
+                                       atol=1e-5, rtol=1e-5)
 
 
 def test_baked_density_follows_an_optimiser_step_and_a_resize():

@@ -19,6 +19,7 @@ from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
 from frugalnerf_ns.field.tensorial import OptimizerState, TensorVMGrid, strided_length, trilinear_rows
 
 DensityActivation = Literal["relu", "softplus"]
+LowerScaleReading = Literal["aligned", "stretched"]
 
 BAKED_DENSITY_MAX_ENTRIES = 2**26
 """Largest grid (nodes) whose density is baked into one dense tensor for rendering outside training: 256 MiB
@@ -70,6 +71,9 @@ class FrugalNeRFField(nn.Module):
         appearance_dim: output size of the shared basis matrix (27).
         downsample_ratio: stride ratio between consecutive scales (s = 4).
         num_lower_scales: L, the number of lower scales (2: three scales in all).
+        lower_scale_reading: where a lower scale's strided view is read: "aligned", each entry at its place in
+            the full grid (the view may stop short of the box's far faces); "stretched", the view's first and
+            last entries on the box's faces (``TensorVMGrid.plane_line_products``).
     """
 
     def __init__(
@@ -87,8 +91,12 @@ class FrugalNeRFField(nn.Module):
         use_view_dirs: bool = False,
         view_pe: int = 0,
         mlp_implementation: MLPImplementation = "auto",
+        lower_scale_reading: LowerScaleReading = "aligned",
     ) -> None:
         super().__init__()
+        if lower_scale_reading not in ("aligned", "stretched"):
+            raise ValueError(f"lower_scale_reading must be 'aligned' or 'stretched', got {lower_scale_reading!r}")
+        self.stretched = lower_scale_reading == "stretched"
         self.register_buffer("aabb", aabb.clone().float())
         self.downsample_ratio = downsample_ratio
         self.num_scales = num_lower_scales + 1
@@ -143,7 +151,7 @@ class FrugalNeRFField(nn.Module):
     # ---- queries --------------------------------------------------------------------------------------
     def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
         coords = self.normalize(positions)
-        raw = sum(p.sum(dim=-1) for p in self.density_grid.plane_line_products(coords, self.stride(scale)))
+        raw = sum(p.sum(dim=-1) for p in self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched))
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
 
     def sampling_map(self, stride: int = 1) -> Tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
@@ -152,7 +160,7 @@ class FrugalNeRFField(nn.Module):
         x' = (x + 1) k - 1 with k = (R - 1) / (s (n - 1)), or 0 where the view keeps one entry)."""
         a = 2.0 / (self.aabb[1] - self.aabb[0])
         b = -self.aabb[0] * a - 1.0
-        if stride == 1:
+        if stride == 1 or self.stretched:
             return a, b
         res = self.density_grid.resolution_tuple
         k = [0.0 if strided_length(r, stride) == 1 else (r - 1) / (stride * (strided_length(r, stride) - 1)) for r in res]
@@ -241,7 +249,7 @@ class FrugalNeRFField(nn.Module):
         self, positions: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], scale: int = 0
     ) -> Float[Tensor, "n 3"]:
         coords = self.normalize(positions)
-        products = self.appearance_grid.plane_line_products(coords, self.stride(scale))
+        products = self.appearance_grid.plane_line_products(coords, self.stride(scale), self.stretched)
         features = self.appearance_basis(torch.cat(products, dim=-1))
         return self.color_mlp(features, directions)
 

@@ -156,12 +156,19 @@ class TensorVMGrid(nn.Module):
         return planes, lines
 
     def plane_line_products(
-        self, coords: Float[Tensor, "n 3"], stride: int = 1
+        self, coords: Float[Tensor, "n 3"], stride: int = 1, stretched: bool = False
     ) -> List[Float[Tensor, "n comps"]]:
-        """Per plane, the component-wise product plane(coords) * line(coords) at the given stride."""
+        """Per plane, the component-wise product plane(coords) * line(coords) at the given stride.
+
+        A strided view is read where its entries lie in the full grid (``coords_for_stride``), or, ``stretched``,
+        with its first and last entries on the box's faces (the coordinates as they are: what reading the view
+        as a tensor of its own over the box gives, as the reference code reads its downsampled tensors)."""
         planes, lines = self.scale_views(stride)
         res = self.resolution_tuple
-        mapped = torch.stack([coords_for_stride(coords[:, i], res[i], stride) for i in range(3)], dim=-1)
+        if stretched:
+            mapped = coords
+        else:
+            mapped = torch.stack([coords_for_stride(coords[:, i], res[i], stride) for i in range(3)], dim=-1)
         products = []
         for plane, line, (a, b), line_axis in zip(planes, lines, PLANE_AXES, LINE_AXES):
             plane_feat = sample_plane(plane, mapped[:, a], mapped[:, b])

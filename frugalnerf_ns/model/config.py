@@ -63,6 +63,13 @@ class FrugalNeRFSettings(ModelConfig):
     coarsest stride plus one entries (16k+1 with ratio 4 and two lower scales), so each lower scale's strided
     view spans the whole box. Off: the views stop short of the box's far faces (at a 176-entry axis the 1/16
     scale's last entry sits at 91 % of it) and the rest of the axis reads that entry."""
+    lower_scale_reading: Literal["aligned", "stretched"] = "aligned"
+    """Where the lower scales read their strided views: "aligned", every entry where it lies in the full grid
+    (past a view's last entry the axis reads that entry, unless ``scale_spanning_grid``); "stretched", the
+    view's first and last entries on the box's faces, as if the view were a grid of its own over the box (the
+    reference code reads its downsampled tensors so): every grid size spans the box, and an entry is read up to
+    (R - 1) mod s full-grid voxels from where it lies (15 of an axis' 175 at R = 176 and s = 16; none at the
+    16k+1 sizes of ``scale_spanning_grid``, where both readings are the same)."""
     step_ratio: float = 0.5
     """Sample step at full resolution, in voxels."""
     max_samples_per_ray: int = 1024

@@ -77,6 +77,7 @@ class FrugalNeRFModel(Model):
             use_view_dirs=self.config.use_view_dirs,
             view_pe=self.config.view_pe,
             mlp_implementation=self.config.mlp_implementation,
+            lower_scale_reading=self.config.lower_scale_reading,
         )
         # What the datamanager found out about the scene (FrugalDataManager; absent with other datamanagers).
         scene = (self.kwargs.get("metadata") or {}).get("frugalnerf_scene") or {}
