@@ -301,3 +301,24 @@ def test_baked_density_follows_an_optimiser_step_and_a_resize():
         assert torch.allclose(field.occupied_density(points), field.density(points), atol=1e-5)
         field.update_alpha_mask(0.5, 25.0, threshold=0.5)  # a new mask: empty voxels read 0 from now on
         assert torch.allclose(field.occupied_density(points), density_where_inside(field, points), atol=1e-5)
+
+
+@pytest.mark.parametrize("channels, length", [(5, 9), (3, 2), (2, 1)])
+def test_cpu_line_reads_match_grid_sample_values_and_gradients(channels, length):
+    """A line's two-corner read and gradient (sample_line) equal grid_sample's on the [1, C, L, 1] tensor."""
+    from frugalnerf_ns.field.tensorial import sample_line
+
+    torch.manual_seed(0)
+    full = torch.randn(1, channels, length * 2, 1, dtype=torch.float64, requires_grad=True)
+    line = full[:, :, ::2, :]  # a strided scale view, as the lower scales read
+    y = torch.cat([torch.rand(200, dtype=torch.float64) * 2.4 - 1.2, torch.tensor([-1.0, 1.0, 0.0], dtype=torch.float64)])
+    weights = torch.randn(channels, len(y), dtype=torch.float64)
+    ours = sample_line(line, y)
+    (ours * weights).sum().backward()
+    ours_grad, full.grad = full.grad.clone(), None
+    grid = torch.stack([torch.zeros_like(y), y], dim=-1).view(1, -1, 1, 2)
+    reference = F.grid_sample(line, grid, mode="bilinear", padding_mode="border", align_corners=True).view(channels, -1)
+    (reference * weights).sum().backward()
+    assert torch.allclose(ours, reference, atol=1e-12)
+    assert torch.allclose(ours_grad, full.grad, atol=1e-12)
+    assert ours_grad[0, :, 1::2].abs().max() == 0  # only the view's entries receive gradient

@@ -96,6 +96,47 @@ def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Flo
     return _BilinearSampleCPU.apply(plane, x, y)
 
 
+def _line_corners(y: Tensor, length: int):
+    """The two entries and the far entry's weight of linear interpolation along a line (corners aligned, border)."""
+    fy = ((y + 1.0) * 0.5 * (length - 1)).clamp(0, length - 1)
+    low = fy.floor().clamp(max=max(length - 2, 0))
+    weight = fy - low
+    low = low.long()
+    return low, (low + 1).clamp(max=length - 1), weight
+
+
+class _LinearSampleCPU(torch.autograd.Function):
+    """A line's linear read as two gathers, its gradient as two index_add_ calls: grid_sample on the [1, C, L, 1]
+    tensor reads four corners of which two (the zero-width axis) carry no weight, and its backward adds four."""
+
+    @staticmethod
+    def forward(ctx, line: Tensor, y: Tensor) -> Tensor:  # type: ignore[override]
+        values = line[0, :, :, 0]
+        low, high, weight = _line_corners(y, values.shape[1])
+        ctx.save_for_backward(low, high, weight)
+        ctx.line_shape, ctx.line_dtype = line.shape, line.dtype
+        return torch.lerp(values.index_select(1, low), values.index_select(1, high), weight.to(values.dtype))
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        low, high, weight = ctx.saved_tensors
+        _, channels, length, _ = ctx.line_shape
+        weight = weight.to(grad.dtype)
+        far = grad * weight
+        accumulated = torch.zeros(channels, length, dtype=grad.dtype, device=grad.device)
+        accumulated.index_add_(1, low, grad - far)
+        accumulated.index_add_(1, high, far)
+        return accumulated.view(1, channels, length, 1).to(ctx.line_dtype), None
+
+
+def sample_line(line: Float[Tensor, "1 c l 1"], y: Float[Tensor, " n"]) -> Float[Tensor, "c n"]:
+    """Linear read of a [1, C, L, 1] line at n points in [-1, 1] (align_corners=True, border padding): what
+    ``sample_plane(line, 0, y)`` gives, with half its corners on the CPU."""
+    if line.is_cuda or y.requires_grad or not torch.is_grad_enabled():
+        return sample_plane(line, torch.zeros_like(y), y)
+    return _LinearSampleCPU.apply(line, y)
+
+
 def trilinear_rows(table: Float[Tensor, "nodes c"], dims: Sequence[int], index: Float[Tensor, "n 3"]) -> Float[Tensor, "n c"]:
     """Trilinear read of a channels-last node table (``dims`` = X, Y, Z nodes, x fastest) at index-space points
     (x, y, z in node units): what grid_sample gives on the [1, C, Z, Y, X] tensor with corners aligned and
@@ -172,7 +213,7 @@ class TensorVMGrid(nn.Module):
         products = []
         for plane, line, (a, b), line_axis in zip(planes, lines, PLANE_AXES, LINE_AXES):
             plane_feat = sample_plane(plane, mapped[:, a], mapped[:, b])
-            line_feat = sample_plane(line, torch.zeros_like(mapped[:, line_axis]), mapped[:, line_axis])
+            line_feat = sample_line(line, mapped[:, line_axis])
             products.append((plane_feat * line_feat).T)
         return products
 
