@@ -105,11 +105,25 @@ def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(mo
     ungrouped.metadata = {k: v for k, v in bundle.metadata.items() if k != RAY_GROUP}
     # The untrained field's weights are mostly below the shading threshold: shade every sample with weight.
     threshold, model.config.weight_threshold = model.config.weight_threshold, 0.0
+    color = model.field.color
+    shaded_with_gradient = []
+
+    def counting_color(positions, directions, scale=0):
+        if torch.is_grad_enabled():
+            shaded_with_gradient.append(positions.shape[0])
+        return color(positions, directions, scale)
+
     try:
+        model.field.color = counting_color
         skipped, skipped_losses, skipped_grads = step(bundle)
+        with_gradient, shaded_with_gradient = sum(shaded_with_gradient), []
         every, every_losses, every_grads = step(ungrouped)
     finally:
         model.config.weight_threshold = threshold
+        del model.field.color
+    # Only the training rays' colours carry gradient (the novel rays' full-scale colour is read detached).
+    assert with_gradient == sum(int(s.shaded[batch.train].sum()) for s in skipped.scales)
+    assert sum(shaded_with_gradient) == sum(int(s.shaded.sum()) for s in every.scales) > with_gradient
     novel, sparse = batch.novel, batch.sparse
     assert sparse.stop > sparse.start and novel.stop > novel.start
     for scale, (fast, full) in enumerate(zip(skipped.scales, every.scales)):

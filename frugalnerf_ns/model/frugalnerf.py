@@ -211,8 +211,11 @@ class FrugalNeRFModel(Model):
                 if inference:
                     render = render_scale_inference(*args)
                 else:
-                    shade = None if groups is None else objective.color_read(cfg, groups.reshape(-1), scale, self.occlusion_active)
-                    render = render_scale(*args, jitter=self.training, shade_rays=shade)
+                    shade = detached = None
+                    if groups is not None:
+                        shade = objective.color_read(cfg, groups.reshape(-1), scale, self.occlusion_active)
+                        detached = objective.color_read_detached(cfg, groups.reshape(-1), scale, self.occlusion_active)
+                    render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached)
             depth = render.depth[:, 0]
             if ndc_rays is not None:
                 # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).

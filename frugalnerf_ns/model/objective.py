@@ -17,7 +17,7 @@ from torch import Tensor
 from torch.profiler import record_function
 
 from frugalnerf_ns.model import losses
-from frugalnerf_ns.model.batch import SPARSE_RAYS, TRAIN_RAYS, EvalBatch, TrainBatch
+from frugalnerf_ns.model.batch import NOVEL_RAYS, SPARSE_RAYS, TRAIN_RAYS, EvalBatch, TrainBatch
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import AdaptationResult, cross_scale_geometric_adaptation
 from frugalnerf_ns.scoring.metrics import composite
@@ -70,6 +70,17 @@ def color_read(
     if scale == 0:
         return groups != SPARSE_RAYS
     return groups == TRAIN_RAYS
+
+
+def color_read_detached(
+    cfg: "FrugalNeRFSettings", groups: Int[Tensor, " rays"], scale: int, occlusion_active: bool
+) -> Optional[Bool[Tensor, " rays"]]:
+    """The rays of ``color_read`` whose colour is read only detached (None: none): Eq. 6 warps the novel rays'
+    full-scale render as a target (``geometric_adaptation``: ``source`` is detached), so no gradient flows
+    back through their colour."""
+    if scale != 0 or (occlusion_active and cfg.occlusion_weight > 0 and cfg.occlusion_background_prior):
+        return None
+    return groups == NOVEL_RAYS
 
 
 def training_losses(

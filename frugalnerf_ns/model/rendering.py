@@ -82,11 +82,13 @@ def render_scale(
     weight_threshold: float,
     jitter: bool,
     shade_rays: Optional[Bool[Tensor, " rays"]] = None,
+    detached_rays: Optional[Bool[Tensor, " rays"]] = None,
 ) -> ScaleRender:
     """March one scale: fixed-step samples in the box, density where occupied, colour where it matters.
 
     ``shade_rays`` (None: all) limits the colour to the rays whose colour is read; the others' ``rgb`` is the
-    background's share alone and their ``colors`` are zero."""
+    background's share alone and their ``colors`` are zero. ``detached_rays`` (None: none) are shaded without
+    gradient (their colour is read, but only detached): no backward pass through the colour MLP for them."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
     # Slots past every ray's exit would hold zero weight (about half of them in NDC scenes, where the box's
@@ -104,7 +106,15 @@ def render_scale(
         shade = shade & shade_rays[:, None]
     if shade.any():
         dirs = directions[:, None, :].expand_as(positions)
-        colors[shade] = field_.color(positions[shade], dirs[shade], scale)
+        if detached_rays is None:
+            colors[shade] = field_.color(positions[shade], dirs[shade], scale)
+        else:
+            tracked, untracked = shade & ~detached_rays[:, None], shade & detached_rays[:, None]
+            if tracked.any():
+                colors[tracked] = field_.color(positions[tracked], dirs[tracked], scale)
+            if untracked.any():
+                with torch.no_grad():
+                    colors[untracked] = field_.color(positions[untracked], dirs[untracked], scale)
     rgb = composite_rgb(comp.weights, colors, background)
     return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade, num_samples)
 
