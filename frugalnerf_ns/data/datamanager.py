@@ -273,8 +273,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         if self.sparse is not None:
             sparse_bundle, batch.sparse_depth = self._sparse_rays()
             bundle = concatenate_ray_bundles(bundle, sparse_bundle)
-        num_sparse = 0 if batch.sparse_depth is None else int(batch.sparse_depth.shape[0])
-        bundle.metadata[RAY_GROUP] = ray_groups(batch.num_train, batch.num_novel, num_sparse, self.device)
+        bundle.metadata[RAY_GROUP] = ray_groups(batch, self.device)
         return bundle, batch
 
     def next_eval(self, step: int) -> Tuple[RayBundle, EvalBatch]:

@@ -47,16 +47,20 @@ def coords_for_stride(x: Float[Tensor, "*bs"], resolution: int, stride: int) -> 
     return full_index / (stride * (n - 1)) * 2.0 - 1.0
 
 
+def _axis_corners(x: Tensor, length: int):
+    """The two entries and the far entry's weight of linear interpolation along one axis of ``length`` entries
+    (align_corners=True, border padding)."""
+    fx = ((x + 1.0) * 0.5 * (length - 1)).clamp(0, length - 1)
+    # The last cell's upper corner is the border entry itself (weight 1 at fx == length - 1).
+    low = fx.floor().clamp(max=max(length - 2, 0))
+    weight = fx - low
+    low = low.long()
+    return low, (low + 1).clamp(max=length - 1), weight
+
+
 def _corners(x: Tensor, y: Tensor, height: int, width: int):
     """Corner indices and weights of bilinear interpolation with align_corners=True and border padding."""
-    fx = ((x + 1.0) * 0.5 * (width - 1)).clamp(0, width - 1)
-    fy = ((y + 1.0) * 0.5 * (height - 1)).clamp(0, height - 1)
-    # The last cell's upper corner is the border entry itself (weight 1 at fx == width - 1).
-    x0 = fx.floor().clamp(max=max(width - 2, 0))
-    y0 = fy.floor().clamp(max=max(height - 2, 0))
-    wx, wy = fx - x0, fy - y0
-    x0, y0 = x0.long(), y0.long()
-    x1, y1 = (x0 + 1).clamp(max=width - 1), (y0 + 1).clamp(max=height - 1)
+    (x0, x1, wx), (y0, y1, wy) = _axis_corners(x, width), _axis_corners(y, height)
     return ((y0 * width + x0, (1 - wx) * (1 - wy)), (y0 * width + x1, wx * (1 - wy)),
             (y1 * width + x0, (1 - wx) * wy), (y1 * width + x1, wx * wy))
 
@@ -96,15 +100,6 @@ def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Flo
     return _BilinearSampleCPU.apply(plane, x, y)
 
 
-def _line_corners(y: Tensor, length: int):
-    """The two entries and the far entry's weight of linear interpolation along a line (corners aligned, border)."""
-    fy = ((y + 1.0) * 0.5 * (length - 1)).clamp(0, length - 1)
-    low = fy.floor().clamp(max=max(length - 2, 0))
-    weight = fy - low
-    low = low.long()
-    return low, (low + 1).clamp(max=length - 1), weight
-
-
 class _LinearSampleCPU(torch.autograd.Function):
     """A line's linear read as two gathers, its gradient as two index_add_ calls: grid_sample on the [1, C, L, 1]
     tensor reads four corners of which two (the zero-width axis) carry no weight, and its backward adds four."""
@@ -112,7 +107,7 @@ class _LinearSampleCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, line: Tensor, y: Tensor) -> Tensor:  # type: ignore[override]
         values = line[0, :, :, 0]
-        low, high, weight = _line_corners(y, values.shape[1])
+        low, high, weight = _axis_corners(y, values.shape[1])
         ctx.save_for_backward(low, high, weight)
         ctx.line_shape, ctx.line_dtype = line.shape, line.dtype
         return torch.lerp(values.index_select(1, low), values.index_select(1, high), weight.to(values.dtype))

@@ -28,9 +28,10 @@ RAY_GROUP = "frugalnerf_ray_group"
 TRAIN_RAYS, NOVEL_RAYS, SPARSE_RAYS = 0, 1, 2
 
 
-def ray_groups(num_train: int, num_novel: int, num_sparse: int, device: torch.device | str = "cpu") -> Int[Tensor, "rays 1"]:
+def ray_groups(batch: "TrainBatch", device: torch.device | str = "cpu") -> Int[Tensor, "rays 1"]:
     """Each ray's group in a training bundle's order: training, then novel, then sparse-depth rays."""
-    counts = torch.tensor([num_train, num_novel, num_sparse], device=device)
+    sizes = [part.stop - part.start for part in (batch.train, batch.novel, batch.sparse)]
+    counts = torch.tensor(sizes, device=device)
     groups = torch.tensor([TRAIN_RAYS, NOVEL_RAYS, SPARSE_RAYS], dtype=torch.int8, device=device)
     return groups.repeat_interleave(counts)[:, None]
 

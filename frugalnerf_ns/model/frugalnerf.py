@@ -204,6 +204,7 @@ class FrugalNeRFModel(Model):
         inference = not self.training and not torch.is_grad_enabled() and self.config.fast_inference
         # A training bundle names each ray's group: colours that no loss reads are not shaded.
         groups = ray_bundle.metadata.get(RAY_GROUP) if self.training and ray_bundle.metadata else None
+        groups = None if groups is None else groups.reshape(-1)
         for scale in range(self._scales_to_render()):
             with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                 args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
@@ -213,8 +214,8 @@ class FrugalNeRFModel(Model):
                 else:
                     shade = detached = None
                     if groups is not None:
-                        shade = objective.color_read(cfg, groups.reshape(-1), scale, self.occlusion_active)
-                        detached = objective.color_read_detached(cfg, groups.reshape(-1), scale, self.occlusion_active)
+                        shade = objective.color_read(cfg, groups, scale, self.occlusion_active)
+                        detached = objective.color_read_detached(cfg, groups, scale, self.occlusion_active)
                     render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached)
             depth = render.depth[:, 0]
             if ndc_rays is not None:

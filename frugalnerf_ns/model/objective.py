@@ -65,7 +65,7 @@ def color_read(
     smoothness), so their colours need not be shaded: skipping them changes no loss and no gradient. The
     occlusion loss with its background prior reads every ray's sample colours.
     """
-    if occlusion_active and cfg.occlusion_weight > 0 and cfg.occlusion_background_prior:
+    if _occlusion_reads_every_color(cfg, occlusion_active):
         return None
     if scale == 0:
         return groups != SPARSE_RAYS
@@ -78,9 +78,14 @@ def color_read_detached(
     """The rays of ``color_read`` whose colour is read only detached (None: none): Eq. 6 warps the novel rays'
     full-scale render as a target (``geometric_adaptation``: ``source`` is detached), so no gradient flows
     back through their colour."""
-    if scale != 0 or (occlusion_active and cfg.occlusion_weight > 0 and cfg.occlusion_background_prior):
+    if scale != 0 or _occlusion_reads_every_color(cfg, occlusion_active):
         return None
     return groups == NOVEL_RAYS
+
+
+def _occlusion_reads_every_color(cfg: "FrugalNeRFSettings", occlusion_active: bool) -> bool:
+    """The occlusion loss's background prior reads every sample's colour, with gradient."""
+    return occlusion_active and cfg.occlusion_weight > 0 and cfg.occlusion_background_prior
 
 
 def training_losses(
