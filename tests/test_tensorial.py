@@ -198,6 +198,20 @@ def test_span_stride_gives_lower_scale_views_that_end_on_the_far_face():
     assert resolution_for_voxels(8, (1.0, 1.0, 1.0), span_stride=16) == (17, 17, 17)
 
 
+def test_span_rounding_up_never_gives_an_axis_fewer_entries():
+    box = (3.0, 3.34, 2.0)  # LLFF's NDC box
+    for voxels in (32**3, 86066, 160**3):
+        plain = resolution_for_voxels(voxels, box)
+        nearest = resolution_for_voxels(voxels, box, span_stride=16)
+        up = resolution_for_voxels(voxels, box, span_stride=16, span_rounding="up")
+        for r, n, u in zip(plain, nearest, up):
+            assert (u - 1) % 16 == 0 and r <= u < r + 16 and u >= n
+    assert resolution_for_voxels(32**3, box, span_stride=16) == (33, 33, 17)
+    assert resolution_for_voxels(32**3, box, span_stride=16, span_rounding="up") == (49, 49, 33)
+    with pytest.raises(ValueError, match="span_rounding"):
+        resolution_for_voxels(32**3, box, span_stride=16, span_rounding="down")
+
+
 def test_sample_step_is_half_a_voxel_and_coarser_by_the_ratio_at_lower_scales():
     field = FrugalNeRFField(AABB, (21, 31, 11), mlp_implementation="torch")
     voxel = 0.1  # box 2 x 3 x 1 with 20 x 30 x 10 intervals

@@ -45,18 +45,25 @@ def log_linear_voxel_counts(initial: int, final: int, num_upsamples: int) -> Lis
     return [int(round(math.exp(log_a + (log_b - log_a) * (i + 1) / num_upsamples))) for i in range(num_upsamples)]
 
 
-def resolution_for_voxels(num_voxels: int, box_size: Sequence[float], span_stride: int = 1) -> Tuple[int, int, int]:
+def resolution_for_voxels(
+    num_voxels: int, box_size: Sequence[float], span_stride: int = 1, span_rounding: str = "nearest"
+) -> Tuple[int, int, int]:
     """Per-axis resolution with cubic voxels filling a box of ``box_size`` with about ``num_voxels``.
 
-    ``span_stride`` > 1 rounds each axis to the nearest ``span_stride * k + 1`` entries (k >= 1), so a view
-    keeping every ``span_stride``-th entry (a lower scale) ends on the box's far face instead of stopping short
-    of it (``coords_for_stride``: points beyond a view's last entry read that entry).
+    ``span_stride`` > 1 rounds each axis to a ``span_stride * k + 1`` entries (k >= 1), so a view keeping every
+    ``span_stride``-th entry (a lower scale) ends on the box's far face instead of stopping short of it
+    (``coords_for_stride``: points beyond a view's last entry read that entry). ``span_rounding`` "nearest"
+    takes the nearest such size (a small grid may lose up to half a coarse interval per axis: 35x39x23 becomes
+    33x33x17 on LLFF's NDC box), "up" the next one at or above the axis' size (never fewer entries).
     """
     volume = math.prod(float(s) for s in box_size)
     voxel = (volume / num_voxels) ** (1.0 / 3.0)
     resolution = [max(2, int(float(s) / voxel)) for s in box_size]
     if span_stride > 1:
-        resolution = [span_stride * max(1, round((r - 1) / span_stride)) + 1 for r in resolution]
+        if span_rounding not in ("nearest", "up"):
+            raise ValueError(f"span_rounding must be 'nearest' or 'up', not {span_rounding!r}")
+        to_int = round if span_rounding == "nearest" else math.ceil
+        resolution = [span_stride * max(1, to_int((r - 1) / span_stride)) + 1 for r in resolution]
     return tuple(resolution)  # type: ignore[return-value]
 
 

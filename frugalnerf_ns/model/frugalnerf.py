@@ -61,7 +61,10 @@ class FrugalNeRFModel(Model):
         super().populate_modules()
         aabb = self.scene_box.aabb.float()
         resolution = resolution_for_voxels(
-            self.config.initial_voxels, (aabb[1] - aabb[0]).tolist(), self._span_stride()
+            self.config.initial_voxels,
+            (aabb[1] - aabb[0]).tolist(),
+            self._span_stride(),
+            self.config.scale_spanning_rounding,
         )
         self.field = FrugalNeRFField(
             aabb=aabb,
@@ -164,7 +167,7 @@ class FrugalNeRFModel(Model):
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]:
         """Grid resolution for ``num_voxels`` over the field's current box (``resolution_for_voxels``)."""
         box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
-        return resolution_for_voxels(num_voxels, box, self._span_stride())
+        return resolution_for_voxels(num_voxels, box, self._span_stride(), self.config.scale_spanning_rounding)
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
