@@ -143,6 +143,49 @@ def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(mo
         assert torch.allclose(skipped_grads[name], grad, rtol=1e-4, atol=1e-5 * scale), name
 
 
+def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(model_and_batch):
+    model, bundle, batch = model_and_batch
+    field = model.field
+    node_sums = []
+    node_sum = field.density_grid.node_sum
+
+    def counting_node_sum():
+        node_sums.append(1)
+        return node_sum()
+
+    def step(read):
+        model.config.training_density_read = read
+        torch.manual_seed(3)  # the same jitter for both renders
+        outputs = model(bundle)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        model.zero_grad()
+        sum(loss_dict.values()).backward()
+        grads = {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+        return outputs["step"], {k: float(v) for k, v in loss_dict.items()}, grads
+
+    try:
+        field.density_grid.node_sum = counting_node_sum
+        nodes, node_losses, node_grads = step("nodes")
+        assert len(node_sums) == 1  # one node tensor for the step's three scales
+        planes, plane_losses, plane_grads = step("planes")
+        assert len(node_sums) == 1
+    finally:
+        model.config.training_density_read = "nodes"
+        del field.density_grid.node_sum
+    assert field._shared_nodes is None  # nothing kept after the step
+    for fast, reference in zip(nodes.scales, planes.scales):
+        assert (reference.densities > 0).any()
+        assert torch.allclose(fast.densities, reference.densities, rtol=1e-5, atol=1e-6)
+        assert torch.allclose(fast.weights, reference.weights, rtol=1e-4, atol=1e-6)
+    for name, value in plane_losses.items():
+        assert node_losses[name] == pytest.approx(value, rel=1e-5, abs=1e-8), name
+    density_names = {name for name in plane_grads if "density_grid" in name}
+    assert len(density_names) == 6 and set(node_grads) == set(plane_grads)
+    for name, grad in plane_grads.items():
+        scale = float(grad.abs().max()) or 1.0
+        assert torch.allclose(node_grads[name], grad, rtol=1e-4, atol=1e-5 * scale), name
+
+
 def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):
     model, bundle, batch = model_and_batch
     model.config.geo_weight = 0.0

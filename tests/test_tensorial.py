@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
-from frugalnerf_ns.field.tensorial import TensorVMGrid, coords_for_stride, strided_length
+from frugalnerf_ns.field.tensorial import TensorVMGrid, coords_for_stride, read_node_sum, strided_length
 
 AABB = torch.tensor([[-1.0, -1.5, -0.5], [1.0, 1.5, 0.5]])
 
@@ -336,3 +336,41 @@ def test_cpu_line_reads_match_grid_sample_values_and_gradients(channels, length)
     assert torch.allclose(ours, reference, atol=1e-12)
     assert torch.allclose(ours_grad, full.grad, atol=1e-12)
     assert ours_grad[0, :, 1::2].abs().max() == 0  # only the view's entries receive gradient
+
+
+def _einsum_node_sum(grid):
+    (p_xy, p_xz, p_yz), (l_z, l_y, l_x) = [p[0] for p in grid.planes], [line[0, :, :, 0] for line in grid.lines]
+    return (torch.einsum("cyx,cz->zyx", p_xy, l_z) + torch.einsum("czx,cy->zyx", p_xz, l_y)
+            + torch.einsum("czy,cx->zyx", p_yz, l_x))
+
+
+@pytest.mark.parametrize("resolution", [(33, 33, 17), (20, 23, 11), (2, 5, 3), (17, 1, 5)])
+def test_node_sum_matrix_products_match_einsum_values_and_gradients(resolution):
+    torch.manual_seed(0)
+    grid = TensorVMGrid(resolution, (16, 4, 4)).double()
+    weights = torch.randn(resolution[2], resolution[1], resolution[0], dtype=torch.float64)
+    reference = _einsum_node_sum(grid)
+    nodes = grid.node_sum()
+    assert nodes.shape == reference.shape and torch.allclose(nodes, reference, rtol=0, atol=1e-12)
+    expected = torch.autograd.grad((reference * weights).sum(), list(grid.parameters()))
+    got = torch.autograd.grad((nodes * weights).sum(), list(grid.parameters()))
+    for a, b in zip(got, expected):
+        assert a.shape == b.shape and b.abs().max() > 0 and torch.allclose(a, b, rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("resolution", [(33, 33, 17), (20, 23, 11), (2, 5, 3)])
+@pytest.mark.parametrize("stride", [1, 4, 16])
+@pytest.mark.parametrize("stretched", [False, True])
+def test_node_sum_reads_match_the_planes_values_and_gradients(resolution, stride, stretched):
+    torch.manual_seed(1)
+    grid = TensorVMGrid(resolution, (16, 4, 4)).double()
+    points = torch.rand(2000, 3, dtype=torch.float64) * 2.4 - 1.2  # some beyond the box: border clamping
+    reference = sum(p.sum(dim=-1) for p in grid.plane_line_products(points, stride, stretched))
+    weights = torch.randn_like(reference)
+    expected = torch.autograd.grad((reference * weights).sum(), list(grid.parameters()))
+    values = read_node_sum(grid.node_sum(), points, stride, stretched)
+    got = torch.autograd.grad((values * weights).sum(), list(grid.parameters()))
+    assert torch.allclose(values, reference, rtol=0, atol=1e-12)
+    for a, b in zip(got, expected):
+        assert torch.allclose(a, b, rtol=0, atol=1e-11)
+    assert any(float(b.abs().max()) > 0 for b in expected)

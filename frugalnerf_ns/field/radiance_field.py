@@ -6,9 +6,10 @@ basis matrix and one colour MLP are shared by all scales, so adding scales adds 
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field as dataclass_field
-from typing import Dict, List, Literal, Optional, Sequence, Tuple
+from typing import Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -16,7 +17,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
-from frugalnerf_ns.field.tensorial import OptimizerState, TensorVMGrid, strided_length, trilinear_rows
+from frugalnerf_ns.field.tensorial import OptimizerState, TensorVMGrid, read_node_sum, strided_length, trilinear_rows
 
 DensityActivation = Literal["relu", "softplus"]
 LowerScaleReading = Literal["aligned", "stretched"]
@@ -126,6 +127,8 @@ class FrugalNeRFField(nn.Module):
         # What ``baked_density`` and ``baked_features`` built, keyed on the versions of what they read.
         self._baked_cache: Tuple[tuple, Dict] = ((), {})
         self._features_cache: Tuple[tuple, Dict] = ((), {})
+        # Inside ``shared_density_nodes``: a one-entry list holding the density nodes once the first read made them.
+        self._shared_nodes: Optional[List[Optional[Tensor]]] = None
 
     # ---- geometry of the grid -------------------------------------------------------------------------
     def stride(self, scale: int) -> int:
@@ -158,8 +161,30 @@ class FrugalNeRFField(nn.Module):
     # ---- queries --------------------------------------------------------------------------------------
     def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
         coords = self.normalize(positions)
-        raw = sum(p.sum(dim=-1) for p in self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched))
+        if self._shared_nodes is not None:
+            if self._shared_nodes[0] is None:
+                self._shared_nodes[0] = self.density_grid.node_sum()
+            raw = read_node_sum(self._shared_nodes[0], coords, self.stride(scale), self.stretched)
+        else:
+            products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
+            raw = sum(p.sum(dim=-1) for p in products)
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
+
+    @contextlib.contextmanager
+    def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:
+        """Within the block, ``density`` reads one ``TensorVMGrid.node_sum`` (made at the first read, with its
+        gradient) at every scale (``read_node_sum``): the planes' values and gradients to float rounding, at a
+        fixed cost of a few matrix products per block instead of 3 planes x 4 corners x C channels per sample.
+        A training step's forward pass is the block: its reads of all scales share the nodes. Grids above
+        ``BAKED_DENSITY_MAX_ENTRIES`` nodes (the paper preset's 640^3) read the planes."""
+        if not enabled or math.prod(self.density_grid.resolution_tuple) > BAKED_DENSITY_MAX_ENTRIES:
+            yield
+            return
+        previous, self._shared_nodes = self._shared_nodes, [None]
+        try:
+            yield
+        finally:
+            self._shared_nodes = previous
 
     def sampling_map(self, stride: int = 1) -> Tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
         """a, b with ``coords = p * a + b``: the corner-aligned [-1, 1] coordinates at which a scale of this

@@ -74,6 +74,10 @@ class FrugalNeRFSettings(ModelConfig):
     reference code reads its downsampled tensors so): every grid size spans the box, and an entry is read up to
     (R - 1) mod s full-grid voxels from where it lies (15 of an axis' 175 at R = 176 and s = 16; none at the
     16k+1 sizes of ``scale_spanning_grid``, where both readings are the same)."""
+    training_density_read: Literal["nodes", "planes"] = "nodes"
+    """How a training step reads density: "nodes", every plane times its line summed on the grid's nodes once
+    per step and read trilinearly at every scale (``FrugalNeRFField.shared_density_nodes``); "planes", the
+    planes and lines at every sample (the reference; same values and gradients to float rounding)."""
     step_ratio: float = 0.5
     """Sample step at full resolution, in voxels."""
     max_samples_per_ray: int = 1024

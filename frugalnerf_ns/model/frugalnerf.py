@@ -208,28 +208,31 @@ class FrugalNeRFModel(Model):
         # A training bundle names each ray's group: colours that no loss reads are not shaded.
         groups = ray_bundle.metadata.get(RAY_GROUP) if self.training and ray_bundle.metadata else None
         groups = None if groups is None else groups.reshape(-1)
-        for scale in range(self._scales_to_render()):
-            with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
-                args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
-                        cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
-                if inference:
-                    render = render_scale_inference(*args)
-                else:
-                    shade = detached = None
-                    if groups is not None:
-                        shade = objective.color_read(cfg, groups, scale, self.occlusion_active)
-                        detached = objective.color_read_detached(cfg, groups, scale, self.occlusion_active)
-                    render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached)
-            depth = render.depth[:, 0]
-            if ndc_rays is not None:
-                # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
-                depth = metric_distance_from_ndc(depth, ndc_rays, self.ndc["near"])
-            renders.append(render)
-            metric_depths.append(depth)
-            suffix = scale_suffix(scale)
-            outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)
-            outputs[f"depth{suffix}"] = depth.reshape(*shape, 1)
-            outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
+        # A training step reads density from nodes shared by its scales (outside training the marcher bakes them).
+        shared_nodes = self.training and not inference and cfg.training_density_read == "nodes"
+        with self.field.shared_density_nodes(shared_nodes):
+            for scale in range(self._scales_to_render()):
+                with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
+                    args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
+                            cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
+                    if inference:
+                        render = render_scale_inference(*args)
+                    else:
+                        shade = detached = None
+                        if groups is not None:
+                            shade = objective.color_read(cfg, groups, scale, self.occlusion_active)
+                            detached = objective.color_read_detached(cfg, groups, scale, self.occlusion_active)
+                        render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached)
+                depth = render.depth[:, 0]
+                if ndc_rays is not None:
+                    # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
+                    depth = metric_distance_from_ndc(depth, ndc_rays, self.ndc["near"])
+                renders.append(render)
+                metric_depths.append(depth)
+                suffix = scale_suffix(scale)
+                outputs[f"rgb{suffix}"] = render.rgb.reshape(*shape, 3)
+                outputs[f"depth{suffix}"] = depth.reshape(*shape, 1)
+                outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
         if self.training:
             # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
             outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths)
