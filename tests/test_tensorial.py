@@ -239,6 +239,32 @@ def test_alpha_mask_and_shrink_fit_the_occupied_region():
     assert field.density_grid.resolution_tuple[0] < 21
 
 
+def test_inside_is_the_box_test_and_the_nearest_mask_voxel_of_the_masks_own_box():
+    field = FrugalNeRFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), (20, 24, 16), mlp_implementation="torch")
+    # The mask's box differs from the field's (as after a shrink): points in one and not the other, and points
+    # beyond the mask's box on one axis only, whose clamped voxel would be occupied.
+    field.alpha_mask_aabb = torch.tensor([[-1.0, -0.9, -1.1], [0.9, 1.0, 1.0]])
+    points = torch.rand(200000, 3, generator=torch.Generator().manual_seed(0)) * 2.6 - 1.3
+
+    def by_definition(mask):
+        box = ((points >= field.aabb[0]) & (points <= field.aabb[1])).all(dim=-1)
+        res = torch.tensor(mask.shape)
+        lo, hi = field.alpha_mask_aabb
+        idx = ((points - lo) / (hi - lo) * (res - 1)).round().long()
+        in_mask_box = ((idx >= 0) & (idx < res)).all(dim=-1)
+        idx = torch.minimum(idx.clamp_min(0), res - 1)
+        return box & in_mask_box & mask[idx[:, 0], idx[:, 1], idx[:, 2]]
+
+    for density in (0.5, 0.9):  # a second mask after the first was looked up: the cached volume follows it
+        field.alpha_mask = torch.rand(20, 24, 16, generator=torch.Generator().manual_seed(1)) < density
+        expected = by_definition(field.alpha_mask)
+        assert 0.1 < expected.float().mean() < 0.9
+        assert torch.equal(field.inside(points), expected)
+        assert torch.equal(field.inside(points.view(400, 500, 3)), expected.view(400, 500))
+    field.alpha_mask[:] = True  # changed in place
+    assert torch.equal(field.inside(points), by_definition(field.alpha_mask))
+
+
 @pytest.mark.parametrize("shape", [(1, 5, 7, 9), (1, 3, 6, 1), (1, 2, 1, 4), (1, 4, 1, 1)])
 def test_cpu_sampling_matches_grid_sample_values_and_gradients(shape):
     """The CPU backward (index_add over four corners) equals grid_sample's, border and strided views included."""

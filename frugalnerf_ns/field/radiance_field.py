@@ -127,6 +127,7 @@ class FrugalNeRFField(nn.Module):
         # What ``baked_density`` and ``baked_features`` built, keyed on the versions of what they read.
         self._baked_cache: Tuple[tuple, Dict] = ((), {})
         self._features_cache: Tuple[tuple, Dict] = ((), {})
+        self._mask_cache: Tuple[tuple, tuple] = ((), ())
         # Inside ``shared_density_nodes``: a one-entry list holding the density nodes once the first read made them.
         self._shared_nodes: Optional[List[Optional[Tensor]]] = None
 
@@ -151,12 +152,24 @@ class FrugalNeRFField(nn.Module):
         if self.alpha_mask.numel() == 0:
             return inside_box
         mask_aabb = self.alpha_mask_aabb
-        res = torch.tensor(self.alpha_mask.shape, device=positions.device)
+        padded, res, strides = self._padded_mask()
+        # The nearest mask voxel; one of False around the mask stands for every voxel beyond it, so a single
+        # clamped lookup gives "in the mask's box and occupied".
         idx = ((positions - mask_aabb[0]) / (mask_aabb[1] - mask_aabb[0]) * (res - 1)).round().long()
-        in_mask_box = ((idx >= 0) & (idx < res)).all(dim=-1)
-        idx = torch.minimum(idx.clamp_min(0), res - 1)
-        occupied = self.alpha_mask[idx[..., 0], idx[..., 1], idx[..., 2]]
-        return inside_box & in_mask_box & occupied
+        idx = torch.minimum((idx + 1).clamp_min(0), res + 1)
+        return inside_box & padded[(idx * strides).sum(dim=-1)]
+
+    def _padded_mask(self) -> Tuple[Bool[Tensor, " entries"], Int[Tensor, "3"], Int[Tensor, "3"]]:
+        """The alpha mask with one voxel of False on every side, flat, its unpadded shape and the padded
+        volume's element strides (cached per mask)."""
+        key = self._versions([self.alpha_mask])
+        if self._mask_cache[0] != key:
+            mask = self.alpha_mask
+            padded = F.pad(mask.to(torch.uint8), (1, 1, 1, 1, 1, 1)).bool().reshape(-1)
+            res = torch.tensor(mask.shape, device=mask.device)
+            strides = torch.tensor([(res[1] + 2) * (res[2] + 2), res[2] + 2, 1], device=mask.device)
+            self._mask_cache = (key, (padded, res, strides))
+        return self._mask_cache[1]
 
     # ---- queries --------------------------------------------------------------------------------------
     def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
