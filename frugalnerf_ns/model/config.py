@@ -63,10 +63,11 @@ class FrugalNeRFSettings(ModelConfig):
     coarsest stride plus one entries (16k+1 with ratio 4 and two lower scales), so each lower scale's strided
     view spans the whole box. Off: the views stop short of the box's far faces (at a 176-entry axis the 1/16
     scale's last entry sits at 91 % of it) and the rest of the axis reads that entry."""
-    scale_spanning_rounding: Literal["nearest", "up"] = "nearest"
+    scale_spanning_rounding: Literal["nearest", "up", "kept"] = "nearest"
     """How ``scale_spanning_grid`` rounds an axis to 16k+1 entries: "nearest" (the first 32^3 grid of
-    frugalnerf-cpu on LLFF's NDC box, 35x39x23, becomes 33x33x17: 41 % fewer voxels), or "up" (49x49x33; the
-    final 160^3 grid 24 % more voxels)."""
+    frugalnerf-cpu on LLFF's NDC box, 35x39x23, becomes 33x33x17: 41 % fewer voxels), "up" (49x49x33; the
+    final 160^3 grid 24 % more voxels), or "kept" (nearest, but the axes that lost most round up until the grid
+    keeps 3/4 of the voxels asked: 33x33x33 there, every later grid as "nearest")."""
     lower_scale_reading: Literal["aligned", "stretched"] = "aligned"
     """Where the lower scales read their strided views: "aligned", every entry where it lies in the full grid
     (past a view's last entry the axis reads that entry, unless ``scale_spanning_grid``); "stretched", the
