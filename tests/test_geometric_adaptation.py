@@ -84,6 +84,17 @@ def test_sparse_depth_loss_reads_the_trailing_rays_at_every_scale(model_and_batc
         model.config.sparse_depth_weight = 0.5
 
 
+def _seeded_step(model, ray_bundle, batch):
+    """One training step's render, losses and gradients, with the same jitter every call."""
+    torch.manual_seed(3)
+    outputs = model(ray_bundle)
+    loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+    model.zero_grad()
+    sum(loss_dict.values()).backward()
+    grads = {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+    return outputs["step"], {k: float(v.detach()) for k, v in loss_dict.items()}, grads
+
+
 def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(model_and_batch):
     import copy
 
@@ -92,13 +103,7 @@ def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(mo
     model, bundle, batch = model_and_batch
 
     def step(ray_bundle):
-        torch.manual_seed(3)  # the same jitter for both renders
-        outputs = model(ray_bundle)
-        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
-        model.zero_grad()
-        sum(loss_dict.values()).backward()
-        grads = {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
-        return outputs["step"], {k: float(v) for k, v in loss_dict.items()}, grads
+        return _seeded_step(model, ray_bundle, batch)
 
     assert RAY_GROUP in bundle.metadata
     ungrouped = copy.copy(bundle)
@@ -155,13 +160,7 @@ def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(mo
 
     def step(read):
         model.config.training_density_read = read
-        torch.manual_seed(3)  # the same jitter for both renders
-        outputs = model(bundle)
-        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
-        model.zero_grad()
-        sum(loss_dict.values()).backward()
-        grads = {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
-        return outputs["step"], {k: float(v) for k, v in loss_dict.items()}, grads
+        return _seeded_step(model, bundle, batch)
 
     try:
         field.density_grid.node_sum = counting_node_sum

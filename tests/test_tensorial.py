@@ -271,6 +271,8 @@ def test_inside_is_the_box_test_and_the_nearest_mask_voxel_of_the_masks_own_box(
         assert torch.equal(field.inside(points.view(400, 500, 3)), expected.view(400, 500))
     field.alpha_mask[:] = True  # changed in place
     assert torch.equal(field.inside(points), by_definition(field.alpha_mask))
+    odd = torch.tensor([[float("nan"), 0.0, 0.0], [float("inf"), 0.0, 0.0], [0.0, -float("inf"), 0.0], [1e30, 0, 0]])
+    assert field.inside(odd).tolist() == [False] * 4
 
 
 @pytest.mark.parametrize("shape", [(1, 5, 7, 9), (1, 3, 6, 1), (1, 2, 1, 4), (1, 4, 1, 1)])
@@ -408,3 +410,32 @@ def test_node_sum_reads_match_the_planes_values_and_gradients(resolution, stride
     for a, b in zip(got, expected):
         assert torch.allclose(a, b, rtol=0, atol=1e-11)
     assert any(float(b.abs().max()) > 0 for b in expected)
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_node_sum_under_autocast_stays_in_the_grids_precision(dtype):
+    torch.manual_seed(0)
+    grid = TensorVMGrid((9, 7, 5), (16, 4, 4))
+    reference = _einsum_node_sum(grid)
+    with torch.autocast("cpu", dtype=dtype):
+        nodes = grid.node_sum()
+    assert nodes.dtype == torch.float32 and torch.allclose(nodes, reference, rtol=1e-5, atol=1e-6)
+    nodes.sum().backward()
+    assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in grid.parameters())
+
+
+def test_shared_density_nodes_are_made_with_gradients_and_only_inside_the_block():
+    field = FrugalNeRFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), (9, 9, 9), mlp_implementation="torch")
+    points = torch.rand(500, 3) * 2 - 1
+    reference = field.density(points, 1)
+    with field.shared_density_nodes():
+        with torch.no_grad():  # a first read without gradients must not leave gradient-less nodes behind
+            assert torch.allclose(field.density(points, 0), field.density(points, 0))
+        shared = field.density(points, 1)
+        with field.shared_density_nodes(False):  # a block turned off inside reads the planes
+            assert field._shared_nodes is None
+        assert field._shared_nodes is not None
+    assert field._shared_nodes is None
+    assert torch.allclose(shared, reference, rtol=1e-5, atol=1e-6)
+    shared.sum().backward()
+    assert all(p.grad is not None and p.grad.abs().max() > 0 for p in field.density_grid.parameters())

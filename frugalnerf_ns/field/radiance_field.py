@@ -62,9 +62,9 @@ def resolution_for_voxels(
     volume = math.prod(float(s) for s in box_size)
     voxel = (volume / num_voxels) ** (1.0 / 3.0)
     resolution = [max(2, int(float(s) / voxel)) for s in box_size]
+    if span_rounding not in ("nearest", "up", "kept"):
+        raise ValueError(f"span_rounding must be 'nearest', 'up' or 'kept', not {span_rounding!r}")
     if span_stride > 1:
-        if span_rounding not in ("nearest", "up", "kept"):
-            raise ValueError(f"span_rounding must be 'nearest', 'up' or 'kept', not {span_rounding!r}")
         asked = resolution
         to_int = math.ceil if span_rounding == "up" else round
         resolution = [span_stride * max(1, to_int((r - 1) / span_stride)) + 1 for r in asked]
@@ -175,8 +175,10 @@ class FrugalNeRFField(nn.Module):
     def _padded_mask(self) -> Tuple[Bool[Tensor, " entries"], Int[Tensor, "3"], Int[Tensor, "3"]]:
         """The alpha mask with one voxel of False on every side, flat, its unpadded shape and the padded
         volume's element strides (cached per mask)."""
-        key = self._versions([self.alpha_mask])
-        if self._mask_cache[0] != key:
+        # Keyed on the mask itself (not only its address, which a new mask may reuse) and its in-place version.
+        key = (self.alpha_mask, self.alpha_mask._version)
+        cached = self._mask_cache[0]
+        if not cached or cached[0] is not key[0] or cached[1] != key[1]:
             mask = self.alpha_mask
             padded = F.pad(mask.to(torch.uint8), (1, 1, 1, 1, 1, 1)).bool().reshape(-1)
             res = torch.tensor(mask.shape, device=mask.device)
@@ -187,10 +189,12 @@ class FrugalNeRFField(nn.Module):
     # ---- queries --------------------------------------------------------------------------------------
     def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
         coords = self.normalize(positions)
-        if self._shared_nodes is not None:
-            if self._shared_nodes[0] is None:
-                self._shared_nodes[0] = self.density_grid.node_sum()
-            raw = read_node_sum(self._shared_nodes[0], coords, self.stride(scale), self.stretched)
+        if self._shared_nodes is not None and not coords.requires_grad:  # the node reads give no position gradient
+            nodes = self._shared_nodes[0]
+            # Made at the first read with gradients (one made under no_grad would carry none to the planes).
+            if nodes is None or (torch.is_grad_enabled() and not nodes.requires_grad):
+                nodes = self._shared_nodes[0] = self.density_grid.node_sum()
+            raw = read_node_sum(nodes, coords, self.stride(scale), self.stretched)
         else:
             products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
             raw = sum(p.sum(dim=-1) for p in products)
@@ -203,10 +207,8 @@ class FrugalNeRFField(nn.Module):
         fixed cost of a few matrix products per block instead of 3 planes x 4 corners x C channels per sample.
         A training step's forward pass is the block: its reads of all scales share the nodes. Grids above
         ``BAKED_DENSITY_MAX_ENTRIES`` nodes (the paper preset's 640^3) read the planes."""
-        if not enabled or math.prod(self.density_grid.resolution_tuple) > BAKED_DENSITY_MAX_ENTRIES:
-            yield
-            return
-        previous, self._shared_nodes = self._shared_nodes, [None]
+        shared = enabled and math.prod(self.density_grid.resolution_tuple) <= BAKED_DENSITY_MAX_ENTRIES
+        previous, self._shared_nodes = self._shared_nodes, ([None] if shared else None)
         try:
             yield
         finally:

@@ -164,16 +164,25 @@ class _NodeSum(torch.autograd.Function):
     @staticmethod
     def forward(ctx, p_xy: Tensor, p_xz: Tensor, p_yz: Tensor, l_z: Tensor, l_y: Tensor, l_x: Tensor) -> Tensor:  # type: ignore[override]
         # Shapes (PLANE_AXES): p_xy [c, Y, X], p_xz [c, Z, X], p_yz [c, Z, Y]; lines [c, Z], [c, Y], [c, X].
-        size_z, size_y, size_x = p_xz.shape[1], p_xy.shape[1], p_xy.shape[2]
-        nodes = (l_z.T @ p_xy.reshape(p_xy.shape[0], -1)).view(size_z, size_y, size_x)
-        nodes.baddbmm_(l_y.T.expand(size_z, -1, -1), p_xz.transpose(0, 1))
-        nodes.view(size_z * size_y, size_x).addmm_(p_yz.reshape(p_yz.shape[0], -1).T, l_x)
+        # In the tensors' own dtype, also under autocast: its half-precision matmul output could not take the
+        # in-place products of full-precision inputs (and the sum of three products is the value that must not
+        # lose precision).
+        with torch.autocast(p_xy.device.type, enabled=False):
+            size_z, size_y, size_x = p_xz.shape[1], p_xy.shape[1], p_xy.shape[2]
+            nodes = (l_z.T @ p_xy.reshape(p_xy.shape[0], -1)).view(size_z, size_y, size_x)
+            nodes.baddbmm_(l_y.T.expand(size_z, -1, -1), p_xz.transpose(0, 1))
+            nodes.view(size_z * size_y, size_x).addmm_(p_yz.reshape(p_yz.shape[0], -1).T, l_x)
         ctx.save_for_backward(p_xy, p_xz, p_yz, l_z, l_y, l_x)
         return nodes
 
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
-        p_xy, p_xz, p_yz, l_z, l_y, l_x = ctx.saved_tensors
+        saved = ctx.saved_tensors
+        with torch.autocast(grad.device.type, enabled=False):
+            return _NodeSum._gradients(grad.to(saved[0].dtype), *saved)
+
+    @staticmethod
+    def _gradients(grad: Tensor, p_xy: Tensor, p_xz: Tensor, p_yz: Tensor, l_z: Tensor, l_y: Tensor, l_x: Tensor):
         grad = grad.contiguous()
         size_z, size_y, size_x = grad.shape
         by_z = grad.view(size_z, size_y * size_x)
