@@ -132,17 +132,23 @@ def sample_line(line: Float[Tensor, "1 c l 1"], y: Float[Tensor, " n"]) -> Float
     return _LinearSampleCPU.apply(line, y)
 
 
+def _cell_corners(index: Float[Tensor, "n 3"], size: Float[Tensor, "3"]) -> Tuple[Tensor, Tensor]:
+    """Per axis, the lower node of the cell an index-space point falls in and the point's weight toward the upper
+    one, clamped to the ``size`` nodes of each axis (corners aligned, border padding)."""
+    f = torch.minimum(index.clamp_min(0), size - 1)
+    # The last cell's upper corner is the border node itself (weight 1 at f == size - 1).
+    low = torch.minimum(f.floor(), (size - 2).clamp_min(0))
+    return low.long(), f - low
+
+
 def trilinear_rows(table: Float[Tensor, "nodes c"], dims: Sequence[int], index: Float[Tensor, "n 3"]) -> Float[Tensor, "n c"]:
     """Trilinear read of a channels-last node table (``dims`` = X, Y, Z nodes, x fastest) at index-space points
     (x, y, z in node units): what grid_sample gives on the [1, C, Z, Y, X] tensor with corners aligned and
     border padding, at 8 row gathers per point (grid_sample reads each channel's 8 nodes separately, C apart
     in memory)."""
     size = torch.tensor([int(n) for n in dims], device=index.device, dtype=index.dtype)
-    f = torch.minimum(index.clamp_min(0), size - 1)
-    # The last cell's upper corner is the border node itself (weight 1 at f == size - 1).
-    low = torch.minimum(f.floor(), (size - 2).clamp_min(0))
-    w = (f - low).to(table.dtype)
-    low = low.long()
+    low, w = _cell_corners(index, size)
+    w = w.to(table.dtype)
     x_step, y_step, z_step = (1 if dims[0] > 1 else 0), (dims[0] if dims[1] > 1 else 0), (dims[0] * dims[1] if dims[2] > 1 else 0)
     base = (low[:, 2] * dims[1] + low[:, 1]) * dims[0] + low[:, 0]
 
@@ -221,8 +227,8 @@ def read_node_sum(
     over planes and components, at 8 reads of one value per point instead of 3 planes x 4 corners x C channels
     and 3 lines x 2 x C (and as many scattered adds in the backward pass).
 
-    The strided view is read in place (its nodes' indices in the full tensor), so every scale's gradient lands
-    in the one full-size tensor: no slice backward that zero-fills and copies it per scale.
+    The strided view is read in place (its nodes' indices in the full tensor), so its gradient is added straight
+    into a full-size tensor: no slice backward that zero-fills and copies one more per scale.
     """
     res = (nodes.shape[2], nodes.shape[1], nodes.shape[0])  # x, y, z
     lengths = [strided_length(r, stride) for r in res]
@@ -230,15 +236,12 @@ def read_node_sum(
     # entries lie; ``coords_for_stride``), or the view's own corner-aligned index ("stretched").
     per_unit = [0.5 * (n - 1) if stretched else 0.5 * (r - 1) / stride for r, n in zip(res, lengths)]
     device, dtype = coords.device, coords.dtype
-    last = torch.tensor([n - 1 for n in lengths], device=device, dtype=dtype)
-    f = torch.minimum(((coords + 1.0) * torch.tensor(per_unit, device=device, dtype=dtype)).clamp_min(0), last)
-    # The last cell's upper corner is the border entry itself (weight 1 at f == n - 1).
-    low = torch.minimum(f.floor(), (last - 1).clamp_min(0))
-    weight = (f - low).to(nodes.dtype)
-    low = low.long()
+    size = torch.tensor(lengths, device=device, dtype=dtype)
+    low, weight = _cell_corners((coords + 1.0) * torch.tensor(per_unit, device=device, dtype=dtype), size)
+    weight = weight.to(nodes.dtype)
     element_step = torch.tensor([stride, stride * res[0], stride * res[0] * res[1]], device=device)
     base = (low * element_step).sum(dim=-1)
-    step = (torch.minimum(low + 1, last.long()) - low) * element_step  # 0 where an axis keeps one entry
+    step = (torch.minimum(low + 1, size.long() - 1) - low) * element_step  # 0 where an axis keeps one entry
     dx, dy, dz = step.unbind(-1)
     corners = torch.stack([base, base + dx, base + dy, base + dy + dx])
     corners = torch.cat([corners, corners + dz])
