@@ -8,7 +8,7 @@ this one and no import runs in a circle."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Tuple
+from typing import Literal, Optional, Tuple
 
 from nerfstudio.models.base_model import ModelConfig
 
@@ -68,6 +68,10 @@ class FrugalNeRFSettings(ModelConfig):
     frugalnerf-cpu on LLFF's NDC box, 35x39x23, becomes 33x33x17: 41 % fewer voxels), "up" (49x49x33; the
     final 160^3 grid 24 % more voxels), or "kept" (nearest, but the axes that lost most round up until the grid
     keeps 3/4 of the voxels asked: 33x33x33 there, every later grid as "nearest")."""
+    scale_spanning_scales: Optional[int] = None
+    """How many lower scales ``scale_spanning_grid`` sizes the grid for, finest first: None, all of them (16k+1
+    entries with ratio 4 and two lower scales); 1, the 1/4 scale only (4k+1: closer to the voxels asked, and the
+    1/16 scale's view then spans the box only with ``lower_scale_reading`` "stretched")."""
     lower_scale_reading: Literal["aligned", "stretched"] = "aligned"
     """Where the lower scales read their strided views: "aligned", every entry where it lies in the full grid
     (past a view's last entry the axis reads that entry, unless ``scale_spanning_grid``); "stretched", the

@@ -159,10 +159,13 @@ class FrugalNeRFModel(Model):
 
     # ---- optimisation -----------------------------------------------------------------------------------
     def _span_stride(self) -> int:
-        """The coarsest scale's stride when every lower scale's view must span the box, else 1."""
+        """The stride of the coarsest scale whose view must span the box (``scale_spanning_scales``), else 1."""
         if not self.config.scale_spanning_grid:
             return 1
-        return self.config.downsample_ratio**self.config.num_lower_scales
+        spanning = self.config.num_lower_scales
+        if self.config.scale_spanning_scales is not None:
+            spanning = min(spanning, self.config.scale_spanning_scales)
+        return self.config.downsample_ratio**spanning
 
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]:
         """Grid resolution for ``num_voxels`` over the field's current box (``resolution_for_voxels``)."""

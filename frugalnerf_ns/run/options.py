@@ -56,6 +56,8 @@ def option_problems(config: Any) -> List[str]:
             " ".join(map(str, fractions)) or "(none)",
         )
     need(model.num_lower_scales >= 0, f"{m}.num_lower_scales", ">= 0", model.num_lower_scales)
+    spanning = model.scale_spanning_scales
+    need(spanning is None or spanning >= 1, f"{m}.scale_spanning_scales", ">= 1 (or None: all)", spanning)
     need(model.downsample_ratio >= 1, f"{m}.downsample_ratio", ">= 1", model.downsample_ratio)
     need(_positive(model.step_ratio), f"{m}.step_ratio", "> 0", model.step_ratio)
     need(model.max_samples_per_ray >= 1, f"{m}.max_samples_per_ray", ">= 1", model.max_samples_per_ray)
