@@ -158,13 +158,13 @@ def test_a_grid_too_large_to_bake_reads_its_planes_with_the_same_pixels(monkeypa
         assert torch.allclose(fast.depth, dense.depth, atol=1e-5)
 
 
-def hollow_front_field(activation: str) -> FrugalNeRFField:
+def hollow_field(activation: str, mask: bool) -> FrugalNeRFField:
     """A slab field on a grid fine along z with nothing in the front 40% of the box (the side the rays come
-    from): raw density below 0 there (ReLU: exactly 0; softplus: tiny, and the alpha mask leaves it out)."""
+    from) nor in a gap in the middle: raw density below 0 there (ReLU: exactly 0; softplus: tiny, and the alpha
+    mask leaves it out; ``mask``: build it)."""
     torch.manual_seed(3)
     field = FrugalNeRFField(AABB, (41, 49, 33), density_components=(4, 2, 2), appearance_components=(6, 2, 2),
                             mlp_hidden_dim=16, mlp_implementation="torch", density_activation=activation)
-    front = slice(20, None)  # z entries of the front 40%
     with torch.no_grad():
         for plane in field.density_grid.planes:
             plane.uniform_(0.0, 0.3)
@@ -173,32 +173,42 @@ def hollow_front_field(activation: str) -> FrugalNeRFField:
             line[:, :, 6:9, :] += 6.0  # a slab across each axis, behind the empty front along z
         shift = 0.0 if activation == "relu" else 10.0  # softplus(x - 10): the slab must be dense there too
         field.density_grid.lines[0].add_(shift / 3)
-        field.density_grid.lines[0][:, :, front, :] = -2.0  # the z line of the XY plane
-        field.density_grid.planes[1][:, :, front, :] = -2.0  # the XZ and YZ planes' z rows
-        field.density_grid.planes[2][:, :, front, :] = -2.0
-        if activation == "softplus":
+        for empty in (slice(20, None), slice(10, 17)):  # z entries of the front 40% and of the gap
+            field.density_grid.lines[0][:, :, empty, :] = -2.0  # the z line of the XY plane
+            field.density_grid.planes[1][:, :, empty, :] = -2.0  # the XZ and YZ planes' z rows
+            field.density_grid.planes[2][:, :, empty, :] = -2.0
+        if mask:
             field.update_alpha_mask(SETTINGS["step_ratio"], SETTINGS["distance_scale"])
     return field
 
 
-@pytest.mark.parametrize("activation", ["relu", "softplus"])
-def test_rays_start_at_their_first_slot_that_can_hold_density_and_render_the_same_pixels(activation):
-    field = hollow_front_field(activation)
+# ReLU without a mask: the grid's zero cells; with one on the grid's nodes: the cells in the mask; softplus:
+# the mask alone.
+@pytest.mark.parametrize("activation, mask", [("relu", False), ("relu", True), ("softplus", True)])
+def test_rays_skip_the_groups_of_slots_that_cannot_hold_density_and_render_the_same_pixels(activation, mask):
+    field = hollow_field(activation, mask)
     origins, directions = rays()
     segments = intersect_aabb(origins, directions, field.aabb, 0.0)
     with torch.no_grad():
         dense = render_scale(field, origins, directions, 0, torch.ones(3), segments, **SETTINGS, jitter=False)
     step, slots = field.sample_step(0, SETTINGS["step_ratio"]), dense.t.shape[1]
     hit = segments.hit
-    assert (dense.densities[hit] > 0).any(dim=-1).float().mean() > 0.6  # most rays do reach density
-    for group in (4, 16):  # the marcher's 16, and finer groups (a smaller dilation: more is skipped)
-        first = field.baked_density(0).first_slots(origins, directions, segments.t_near, step, slots, group=group)
+    dense_slot = dense.densities > 0
+    assert dense_slot[hit].any(dim=-1).float().mean() > 0.6  # most rays do reach density
+    empty = (~dense_slot) & (dense.t < segments.t_far[:, None])
+    for group in (4, 8, 16):  # the marcher's 8, finer (a smaller dilation: more is skipped) and coarser groups
+        groups = field.baked_density(0).occupied_groups(origins, directions, segments.t_near, step, slots, group)
+        kept = groups.repeat_interleave(group, dim=1)[:, :slots]
         # Conservative: the oracle's density is exactly 0 at every skipped slot ...
-        assert (dense.densities[torch.arange(slots)[None, :] < first[:, None]] == 0).all()
-        if group == 4:  # ... and not vacuous: rays that reach density skip most of the empty slots before it
-            reach = (dense.densities > 0).any(dim=-1)
-            first_dense = (dense.densities > 0).to(torch.uint8).argmax(dim=-1)
-            assert first[reach].float().mean() > 0.6 * first_dense[reach].float().mean() > 0
+        assert not (dense_slot & ~kept).any()
+        if group == 4:
+            # ... and not vacuous: most empty slots in front of the density are skipped, and (ReLU: its grid's
+            # zero cells bound more tightly than the dilated mask) some of those behind a ray's first dense slot.
+            before = torch.arange(slots)[None, :] < dense_slot.to(torch.uint8).argmax(dim=-1, keepdim=True)
+            reach = dense_slot.any(dim=-1, keepdim=True)
+            assert (~kept & empty & before & reach).sum() > 0.6 * (empty & before & reach).sum()
+            if activation == "relu":
+                assert (~kept & empty & ~before & reach).sum() > 0.2 * (empty & ~before & reach).sum() > 0
     for scale in (0, 1, 2):
         dense, fast = both(field, scale, termination=0.0)
         assert torch.allclose(fast.rgb, dense.rgb, atol=2e-6)

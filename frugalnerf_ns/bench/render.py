@@ -147,14 +147,28 @@ def largest_difference(first: list, second: list) -> float:
     return max(float((a - b).abs().max()) for a, b in zip(first, second))
 
 
-def marcher_from_tree(tree: Path):
-    """``render_scale_inference`` of another source tree's ``frugalnerf_ns/model/rendering.py``, loaded under a
-    private module name beside this tree's package (whose other modules it imports)."""
-    path = tree / "frugalnerf_ns" / "model" / "rendering.py"
-    if not path.is_file():
-        sys.exit(f"benchmark_render: error: --before {tree}: no {path} (pass a source tree, e.g. a git worktree)")
-    spec = importlib.util.spec_from_file_location("frugalnerf_before_rendering", path)
+def _load_private(path: Path, name: str):
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
     spec.loader.exec_module(module)  # type: ignore[union-attr]
-    return module.render_scale_inference
+    return module
+
+
+def marcher_from_tree(tree: Path):
+    """``render_scale_inference`` of another source tree's ``frugalnerf_ns/model/rendering.py``, loaded under a
+    private module name beside this tree's package (whose other modules it imports). Methods of
+    ``BakedDensity`` that the earlier marcher calls and this tree no longer has are lent from that tree's
+    ``radiance_field.py`` (they read only the fields both trees' ``BakedDensity`` hold)."""
+    path = tree / "frugalnerf_ns" / "model" / "rendering.py"
+    if not path.is_file():
+        sys.exit(f"benchmark_render: error: --before {tree}: no {path} (pass a source tree, e.g. a git worktree)")
+    field_path = tree / "frugalnerf_ns" / "field" / "radiance_field.py"
+    if field_path.is_file():
+        from frugalnerf_ns.field import radiance_field
+
+        before_field = _load_private(field_path, "frugalnerf_before_radiance_field")
+        for name, member in vars(before_field.BakedDensity).items():
+            if callable(member) and not name.startswith("__") and not hasattr(radiance_field.BakedDensity, name):
+                setattr(radiance_field.BakedDensity, name, member)
+    return _load_private(path, "frugalnerf_before_rendering").render_scale_inference

@@ -409,11 +409,15 @@ class BakedDensity:
         """Flat bool volume, dilated by ``radius`` entries (z, y, x): ``"cells"``, the density grid's cells
         whose density can be non-zero (a trilinear read is a convex combination of the cell's 8 nodes and the
         activation is monotone, so a cell whose nodes all activate to 0 reads 0 everywhere; softplus never
-        does); ``"mask"``, the alpha mask's occupied voxels."""
+        does); ``"mask"``, the alpha mask's occupied voxels; ``"cells in mask"``, the cells that can be non-zero
+        and have a corner in the mask (for a mask on the grid's own nodes: a point's nearest mask voxel is one
+        of its cell's corners)."""
         key = (which, radius)
         if key not in self._dilated:
-            if which == "cells":
+            if which in ("cells", "cells in mask"):
                 volume = (F.max_pool3d(activate_density(self.grid, self.activation), kernel_size=2, stride=1) > 0)
+                if which == "cells in mask":  # and a corner's mask voxel (the nearest one to any point of the cell)
+                    volume &= F.max_pool3d(self.mask, kernel_size=2, stride=1) > 0  # type: ignore[arg-type]
             else:
                 volume = self.mask > 0  # type: ignore[operator]
             volume = volume.to(self.grid.dtype)
@@ -436,46 +440,48 @@ class BakedDensity:
         flat = (index[..., 2] * int(dims[1]) + index[..., 1]) * int(dims[0]) + index[..., 0]
         return volume[flat]
 
-    def first_slots(
+    def occupied_groups(
         self,
         origins: Float[Tensor, "rays 3"],
         directions: Float[Tensor, "rays 3"],
         t_near: Float[Tensor, " rays"],
         step: float,
         num_samples: int,
-        group: int = 16,
-    ) -> Int[Tensor, " rays"]:
-        """Per ray, a slot index (a multiple of ``group``) before which every slot ``t_near + (i + 0.5) step``
-        has density exactly 0 (``num_samples`` when all have), so a march may start there and composite the
-        same pixels. One lookup per ``group`` slots at the group's centre, in volumes dilated by how far the
-        group's slots (and their nearest mask voxels) lie from it: the density grid's cells that can be
-        non-zero (ReLU fields), or the alpha mask's occupied voxels (softplus)."""
-        device, dtype = origins.device, origins.dtype
-        start = torch.zeros(origins.shape[0], dtype=torch.long, device=device)
-        # One conservative bound: a ReLU field's zero cells (tighter than the mask, which is dilated); softplus is
-        # never 0, so there only the mask can say empty.
-        if self.activation == "relu":
-            which, volume, a, b, cell = "cells", self.grid, self.grid_a, self.grid_b, 1
-        elif self.mask is not None:
-            which, volume, a, b, cell = "mask", self.mask, self.mask_a, self.mask_b, 0
-        else:
-            return start
-        nodes = torch.tensor(volume.shape[2:][::-1], device=device, dtype=dtype)  # x, y, z
-        if bool((nodes < 2).any()):
-            return start  # a one-entry axis: no cells to bound (the lower scales of a tiny grid)
+        group: int = 8,
+    ) -> Bool[Tensor, "rays groups"]:
+        """Per ray and group of ``group`` consecutive slots ``t_near + (i + 0.5) step``: False where every slot
+        of the group has density exactly 0, so a march may skip the group and composite the same pixels. One
+        lookup per group at its centre, in volumes dilated by how far the group's slots (and their nearest
+        mask voxels) lie from it: the density grid's cells that can be non-zero (ReLU fields; softplus is
+        never 0) and the alpha mask's occupied voxels (``occupied_density`` is 0 outside them). Each bound is
+        conservative, so both together are."""
         groups = -(-num_samples // group)
-        centre = torch.arange(groups, device=device, dtype=dtype) * group + 0.5 * group
+        hit = torch.ones(origins.shape[0], groups, dtype=torch.bool, device=origins.device)
+        if origins.shape[0] == 0:
+            return hit
+        bounds = [("cells", self.grid, self.grid_a, self.grid_b, 1)] if self.activation == "relu" else []
+        if self.mask is not None:
+            same_nodes = self.mask.shape == self.grid.shape and bool(
+                torch.equal(self.mask_a, self.grid_a) and torch.equal(self.mask_b, self.grid_b))
+            if bounds and same_nodes:  # both bounds in one volume: one lookup per group, and tighter
+                bounds = [("cells in mask", self.grid, self.grid_a, self.grid_b, 1)]
+            else:
+                bounds.append(("mask", self.mask, self.mask_a, self.mask_b, 0))
+        centre = torch.arange(groups, device=origins.device, dtype=origins.dtype) * group + 0.5 * group
         t = t_near[:, None] + centre[None, :] * step
-        to_index = 0.5 * (nodes - 1)  # grid_sample's corner-aligned coordinates in [-1, 1] to entries
-        f_origin, f_direction = (origins * a + b + 1.0) * to_index, directions * a * to_index
-        # How far (in entries) a group's slots lie from its centre, plus the half entry between a point and its
-        # nearest node and one for rounding.
-        reach = (0.5 * group * step) * f_direction.abs().amax(dim=0) + (0.0 if cell else 0.5)
-        radius = tuple(int(r) + 1 for r in reach.ceil().tolist()[::-1])
-        occupancy = self._dilated_occupancy(which, radius)  # type: ignore[arg-type]
-        hit = self._group_hits(occupancy, nodes - cell, f_origin, f_direction, t, rounding=not cell)
-        first = torch.where(hit.any(dim=-1), hit.to(torch.uint8).argmax(dim=-1), torch.full_like(start, groups))
-        return (first * group).clamp(max=num_samples)
+        for which, volume, a, b, cell in bounds:
+            nodes = torch.tensor(volume.shape[2:][::-1], device=origins.device, dtype=origins.dtype)  # x, y, z
+            if bool((nodes < 2).any()):
+                continue  # a one-entry axis: no cells to bound (the lower scales of a tiny grid)
+            to_index = 0.5 * (nodes - 1)  # grid_sample's corner-aligned coordinates in [-1, 1] to entries
+            f_origin, f_direction = (origins * a + b + 1.0) * to_index, directions * a * to_index
+            # How far (in entries) a group's slots lie from its centre, plus the half entry between a point and
+            # its nearest node and one for rounding.
+            reach = (0.5 * group * step) * f_direction.abs().amax(dim=0) + (0.0 if cell else 0.5)
+            radius = tuple(int(r) + 1 for r in reach.ceil().tolist()[::-1])
+            occupancy = self._dilated_occupancy(which, radius)  # type: ignore[arg-type]
+            hit &= self._group_hits(occupancy, nodes - cell, f_origin, f_direction, t, rounding=not cell)
+        return hit
 
     def read(self, positions: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
         """Density at world points from the dense tensor (trilinear, border-clamped; no mask, no box test)."""

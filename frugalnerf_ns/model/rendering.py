@@ -119,6 +119,10 @@ def render_scale(
     return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade, num_samples)
 
 
+SKIP_GROUP = 8
+"""Slots per group in the inference marcher's empty-space test (``BakedDensity.occupied_groups``): finer
+groups are dilated less (more is skipped) but cost more lookups; 8 left ~30 % fewer slots than 16 on fern."""
+
 TERMINATION_TRANSMITTANCE = 1e-4
 """A ray whose transmittance fell below this is finished: its remaining samples can add at most this much
 to any colour channel (below 1/255) and take it from the background's share."""
@@ -150,12 +154,14 @@ def render_scale_inference(
     """``render_scale`` without jitter or gradients, marched ``block`` slots at a time over the rays still
     alive: the same samples (``march_steps``' rule), the same compositing (``composite_weights``: optical
     depth capped, exclusive transmittance from summed optical depths), the same colour threshold. A ray leaves
-    the march when its next block starts past its segment's end or its transmittance drops below
-    ``termination`` (0 keeps every ray to its end: the dense result up to float rounding).
+    the march when it has no slots left in its segment or its transmittance drops below ``termination`` (0
+    keeps every ray to its end: the dense result up to float rounding).
 
-    Density comes from ``field.occupied_density`` at every slot of a block (the baked grid: one dense read,
-    no selection of the occupied slots); each ray starts at its first slot that can hold density
-    (``BakedDensity.first_slots``); colour only at the slots whose weight passes the threshold, added per ray. The
+    The slots come in groups of ``SKIP_GROUP``; a ray marches only the groups that can hold density
+    (``BakedDensity.occupied_groups``: every skipped slot's density is exactly 0, so it would add nothing to
+    any sum), ``block // SKIP_GROUP`` of them per iteration, in order. Density comes from
+    ``field.occupied_density`` at every slot of a marched group (the baked grid: one dense read, no selection
+    of the occupied slots); colour only at the slots whose weight passes the threshold, added per ray. The
     state of the rays still marching is kept packed, and a ray's sums are written out when it leaves."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
@@ -164,25 +170,38 @@ def render_scale_inference(
     stop_optical = float("inf") if termination <= 0 else -math.log(termination)
     delta = step * distance_scale
     baked = field_.baked_density(scale)
+    group = min(SKIP_GROUP, block)
+    per_block = max(1, block // group)  # groups marched per iteration
     # Per ray: accumulated weight, weighted t (depth), colour. Rays that miss the box keep zeros.
     sums = torch.zeros(rays, 5, device=device, dtype=compute)
     ids = torch.nonzero(segments.hit, as_tuple=True)[0]
     o, d = origins[ids].to(compute), directions[ids].to(compute)
     t_near, t_far = segments.t_near[ids].to(compute), segments.t_far[ids].to(compute)
-    # Each ray starts at its first slot that can hold density (the slots before add nothing to any sum).
-    slot = baked.first_slots(o, d, t_near, step, num_samples) if baked is not None else torch.zeros_like(ids)
-    marching = (slot < num_samples) & (t_near + (slot + 0.5) * step < t_far)
-    ids, o, d, t_near, t_far, slot = (x[marching] for x in (ids, o, d, t_near, t_far, slot))
+    # The groups of slots each ray marches: those that start inside its segment and can hold density (the
+    # others add nothing to any sum), in order, packed to the front of ``order`` (``count`` per ray).
+    num_groups = -(-num_samples // group)
+    starts = torch.arange(num_groups, device=device) * group
+    wanted = t_near[:, None] + (starts[None, :].to(compute) + 0.5) * step < t_far[:, None]
+    if baked is not None:
+        wanted &= baked.occupied_groups(o, d, t_near, step, num_samples, group)
+    count = wanted.sum(dim=-1)
+    order = torch.argsort((~wanted).to(torch.uint8), dim=-1, stable=True)
+    marching = count > 0
+    ids, o, d, t_near, t_far, count, order = (x[marching] for x in (ids, o, d, t_near, t_far, count, order))
     optical_sum = torch.zeros(ids.numel(), device=device, dtype=compute)  # -log transmittance so far
     ray_sums = torch.zeros(ids.numel(), 5, device=device, dtype=compute)
-    offsets = torch.arange(block, device=device)
+    in_group = torch.arange(group, device=device)
+    ranks = torch.arange(per_block, device=device)
+    first = 0  # the rank (among a ray's marched groups) of this iteration's first group
     while ids.numel() > 0:
-        index = slot[:, None] + offsets[None, :]
+        groups = order[:, first : first + per_block]
+        index = (groups[:, :, None] * group + in_group).reshape(ids.numel(), -1)
+        marched = ((first + ranks[: groups.shape[1]])[None, :] < count[:, None]).repeat_interleave(group, dim=1)
         # The same arithmetic as march_steps (offset 0.5 without jitter), so the positions are the oracle's.
         t = t_near[:, None] + (index.to(compute) + 0.5) * step
         positions = o[:, None, :] + d[:, None, :] * t[..., None]
         density = field_.occupied_density(positions.view(-1, 3), scale).view_as(t).to(compute)
-        in_segment = (t < t_far[:, None]) & (index < num_samples)
+        in_segment = marched & (t < t_far[:, None]) & (index < num_samples)
         optical = torch.where(in_segment, (density * delta).clamp(0.0, MAX_OPTICAL_DEPTH), 0.0)
         weights, optical_sum = transmittance_weights(optical, optical_sum)
         ray_sums[:, 0] += weights.sum(dim=-1)
@@ -191,13 +210,13 @@ def render_scale_inference(
         if rows.numel():
             colors = field_.inference_color(positions[rows, cols], d[rows], scale).to(compute)
             ray_sums[:, 2:].index_add_(0, rows, colors * weights[rows, cols, None])
-        slot = slot + block
-        marching = (slot < num_samples) & (t_near + (slot + 0.5) * step < t_far) & (optical_sum < stop_optical)
+        first += per_block
+        marching = (count > first) & (optical_sum < stop_optical)
         if not bool(marching.all()):
             left = ~marching
             sums[ids[left]] = ray_sums[left]
-            ids, o, d, t_near, t_far, slot, optical_sum, ray_sums = (
-                x[marching] for x in (ids, o, d, t_near, t_far, slot, optical_sum, ray_sums))
+            ids, o, d, t_far, t_near, count, order, optical_sum, ray_sums = (
+                x[marching] for x in (ids, o, d, t_far, t_near, count, order, optical_sum, ray_sums))
     sums[ids] = ray_sums
     accumulation, weighted_t, rgb = sums[:, 0], sums[:, 1], sums[:, 2:]
     eps = torch.finfo(compute).eps
