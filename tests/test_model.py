@@ -105,7 +105,8 @@ def test_rgba_targets_are_composited_on_the_render_background():
     assert torch.allclose(objective.target_rgb(image, torch.ones(3)), torch.tensor([[1.0, 0.5, 0.5]]))
 
 
-@pytest.mark.parametrize("carry,spanning", [(False, False), (True, False), (False, True)])
+# spanning: False, True (every lower scale's view spans the box) or 1 (the 1/4 scale's only).
+@pytest.mark.parametrize("carry,spanning", [(False, False), (True, False), (False, True), (False, 1)])
 def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spanning):
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
@@ -114,8 +115,12 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spannin
     from frugalnerf_ns.run.presets import AdamBetasOptimizerConfig
 
     # Spanning needs a final grid past 2 x 16 + 1 entries to grow at all.
-    model = tiny_model(carry_optimizer_state=carry, scale_spanning_grid=spanning, **({"final_voxels": 40**3} if spanning else {}))
+    spanning_options = {"scale_spanning_grid": bool(spanning)}
+    if spanning:
+        spanning_options.update(final_voxels=40**3, scale_spanning_scales=None if spanning is True else spanning)
+    model = tiny_model(carry_optimizer_state=carry, **spanning_options)
     coarsest = model.config.downsample_ratio**model.config.num_lower_scales
+    ratio = model.config.downsample_ratio
     resolutions = [model.field.density_grid.resolution_tuple]
     pipeline = SimpleNamespace(get_param_groups=model.get_param_groups)
     opt_config = {
@@ -151,7 +156,9 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spannin
     # Spanning: at the start, after every upsampling and after the shrink, each lower scale's view ends on the
     # box's far face (16k+1 entries per axis); otherwise the sizes follow the voxel count alone.
     aligned = [all((r - 1) % coarsest == 0 for r in res) for res in resolutions]
-    assert all(aligned) if spanning else not all(aligned)
+    assert all(aligned) if spanning is True else not all(aligned)
+    if spanning == 1:  # 4k+1 entries: the 1/4 scale's view ends on the far face, the 1/16 scale's not always
+        assert all((r - 1) % ratio == 0 for res in resolutions for r in res)
     assert model.field.alpha_mask.numel() > 0
     assert (model.field.aabb[1] - model.field.aabb[0] <= 2.0 + 1e-5).all()
     model.eval()
