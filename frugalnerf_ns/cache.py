@@ -4,8 +4,9 @@ the key they were written for matches, rebuilt when stale or unreadable."""
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Callable, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -40,3 +41,50 @@ def cache_file_name(view_names: Sequence[str], width: int, height: int, kind: st
     if len(views) > 80:  # many views: keep the name short, still unique
         views = hashlib.sha1(views.encode()).hexdigest()[:12]
     return f"{kind}_{views}_{width}x{height}.npz"
+
+
+CACHE_FOLDER = "frugalnerf_cache"
+"""The cache folder's name inside a scene's data folder."""
+
+_chosen_cache_dirs: Dict[Path, Path] = {}
+
+
+def user_cache_root() -> Path:
+    """This user's cache folder for scenes whose data folder cannot be written: $XDG_CACHE_HOME/frugalnerf
+    (default ~/.cache/frugalnerf)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "frugalnerf"
+
+
+def _writable(folder: Path) -> bool:
+    """The folder can be made and written, and its permissions (or those of its nearest existing parent) allow
+    writing: a dataset marked read-only is not written, also by root, whom the system would let."""
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if existing.is_dir() and not existing.stat().st_mode & 0o222:
+        return False
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write-test-{os.getpid()}"
+        probe.touch()
+        probe.unlink()
+        return True
+    except OSError:
+        return False
+
+
+def scene_cache_dir(data: Path, say: Callable[[str], None] = print) -> Path:
+    """Where a scene's caches (downscaled images, sparse points, monocular depth) go: ``frugalnerf_cache`` in its
+    data folder, or, where that cannot be written (a read-only dataset mount, CI's shared data), a folder of its
+    own in ``user_cache_root()``, said once per scene and process. Never an error: the fallback is only made
+    when first written to."""
+    folder = data.resolve()
+    folder = folder.parent if folder.is_file() else folder  # a transforms.json given as --data
+    if folder not in _chosen_cache_dirs:
+        local = folder / CACHE_FOLDER
+        if _writable(local):
+            _chosen_cache_dirs[folder] = local
+        else:
+            digest = hashlib.sha1(str(folder).encode()).hexdigest()[:12]
+            _chosen_cache_dirs[folder] = user_cache_root() / f"{folder.name}-{digest}"
+            say(f"frugalnerf: {folder} cannot be written: its caches go to {_chosen_cache_dirs[folder]}")
+    return _chosen_cache_dirs[folder]

@@ -7,6 +7,8 @@ images. Each writer returns the expected pixel (u, v) of POINT in every frame, i
 from __future__ import annotations
 
 import json
+import math
+import shutil
 from pathlib import Path
 from typing import List, Tuple
 
@@ -73,6 +75,16 @@ def write_llff(root: Path, count: int = 10, factor: int = 2) -> List[Tuple[float
     np.save(root / "poses_bounds.npy", np.array(rows))
     write_images(root / f"images_{factor}", [f"image{i:03d}.png" for i in range(count)])
     return pixels
+
+
+def write_llff_photos(root: Path, count: int = 10, factor: int = 32) -> List[Tuple[float, float]]:
+    """An LLFF capture as a phone gives it: poses_bounds.npy and full-size photos in images/ only (here
+    factor x 40x30 = 1280x960, which the parser's default brings to 640x480). Pixels in 640x480 units."""
+    pixels = write_llff(root, count, factor)
+    shutil.rmtree(root / f"images_{factor}")
+    write_images(root / "images", [f"image{i:03d}.png" for i in range(count)], size=(WIDTH * factor, HEIGHT * factor))
+    to_default = factor / math.ceil(WIDTH * factor / 640)  # the default downscale: long side <= 640 px
+    return [(u * to_default, v * to_default) for u, v in pixels]
 
 
 def write_dtu(root: Path, count: int = 10, factor: int = 4) -> List[Tuple[float, float]]:

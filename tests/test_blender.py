@@ -15,7 +15,8 @@ from PIL import Image
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.datamanager import FrugalDataManagerConfig
 from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_layout
-from frugalnerf_ns.data.dataparsers.blender import BlenderDataParserConfig, area_downscale
+from frugalnerf_ns.data.dataparsers.blender import BlenderDataParserConfig
+from frugalnerf_ns.data.downscaled_images import area_downscale
 from frugalnerf_ns.data.procedural_scene import SceneSpec, blender_camera_poses, render_view, write_blender_scene
 from frugalnerf_ns.data.splits import dietnerf_train_views, load_split_table
 
@@ -122,15 +123,20 @@ def test_area_downscale_drops_partial_blocks():
     assert small[0, 0, 0] == round(np.mean([pixels[0, 0, 0], pixels[0, 1, 0], pixels[1, 0, 0], pixels[1, 1, 0]]))
 
 
-def test_unwritable_data_gets_its_half_resolution_images_in_a_temporary_folder(blender_scene, tmp_path):
+def test_unwritable_data_gets_its_half_resolution_images_in_the_users_cache(blender_scene, tmp_path, monkeypatch, capsys):
     scene = tmp_path / "readonly"
     shutil.copytree(blender_scene, scene, ignore=shutil.ignore_patterns("frugalnerf_cache"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user"))
     # A file where the cache folder would go: no folder can be made there (also for root, unlike chmod).
     (scene / "frugalnerf_cache").write_text("not a folder")
     train = outputs(scene, downscale_factor=2, train_views=(1, 2))
     assert (scene / "frugalnerf_cache").is_file()
-    assert all(not Path(p).is_relative_to(scene) for p in train.image_filenames)
+    assert all(Path(p).is_relative_to(tmp_path / "user" / "frugalnerf") for p in train.image_filenames)
     assert all(Path(p).is_file() and Image.open(p).size == (SPEC.width // 2, SPEC.height // 2) for p in train.image_filenames)
+    said = capsys.readouterr().out
+    assert said.count("cannot be written: its caches go to") == 1 and "making 2 image(s) at 1/2 size" in said
+    again = outputs(scene, downscale_factor=2, train_views=(1, 2))  # made once: the second parse reuses them
+    assert again.image_filenames == train.image_filenames and "making" not in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("break_it,words", [

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_layout
@@ -25,6 +26,8 @@ from tests import layout_fixtures as fx
 LAYOUTS = {
     "llff": (fx.write_llff, lambda d: LLFFDataParserConfig(data=d, downscale_factor=2, train_views=(1, 3, 5, 7, 9),
                                                             test_views=(0, 2, 4, 6, 8))),
+    "llff photos only": (fx.write_llff_photos, lambda d: LLFFDataParserConfig(
+        data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "dtu": (fx.write_dtu, lambda d: DTUDataParserConfig(data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "realestate": (fx.write_realestate, lambda d: RealEstateDataParserConfig(data=d, num_train_views=4)),
     "colmap": (fx.write_colmap, lambda d: FewShotColmapDataParserConfig(
@@ -42,7 +45,11 @@ def all_views(config, pixels):
         outputs = parser.get_dataparser_outputs(split)
         names = [p.name for p in outputs.image_filenames]
         cams.append(outputs.cameras)
-        all_names = sorted(p.name for p in outputs.image_filenames[0].parent.iterdir())
+        # Copies made into a cache hold only the splits parsed so far: name the views by the data's own folder.
+        folder = outputs.image_filenames[0].parent
+        if "frugalnerf_cache" in folder.parts:
+            folder = Path(config.data) / "images"
+        all_names = sorted(p.name for p in folder.iterdir())
         pix += [pixels[all_names.index(n)] for n in names]
     return cams, pix, outputs
 
@@ -69,6 +76,42 @@ def test_parsed_cameras_see_the_point_where_the_fixture_put_it(layout, tmp_path)
         meeting.append(p)
     meeting = torch.stack(meeting)
     assert (meeting - meeting.mean(0)).norm(dim=-1).max() < 1e-4 * scale
+
+
+def test_llff_photos_only_train_on_copies_made_once_in_the_cache(tmp_path, capsys):
+    scene = tmp_path / "capture"
+    fx.write_llff_photos(scene)
+    parse = LLFFDataParserConfig(data=scene, train_views=(1, 3), test_views=(0, 2)).setup().get_dataparser_outputs
+    train = parse("train")
+    said = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
+    assert "full-size photos only (1280x960): training at 1/2 (640x480)" in said and "making 2 image(s)" in said
+    assert all(p.parent == scene / "frugalnerf_cache" / "images_2" for p in train.image_filenames)
+    assert int(train.cameras.width[0, 0]) == 640 and int(train.cameras.height[0, 0]) == 480
+    assert torch.allclose(train.cameras.fx[:, 0], torch.tensor([36.0 * 16] * 2))  # the fixture's 36 px at 40x30
+    with Image.open(train.image_filenames[1]) as img:  # view 3's grey (10 * 3), area-averaged
+        assert img.size == (640, 480) and np.asarray(img)[100, 200].tolist() == [30, 30, 30]
+    stamp = train.image_filenames[0].stat().st_mtime_ns
+    assert parse("train").image_filenames == train.image_filenames and "making" not in capsys.readouterr().out
+    assert train.image_filenames[0].stat().st_mtime_ns == stamp  # reused, not rewritten
+    # An explicit factor still rules, also where no images_<factor>/ exists.
+    four = LLFFDataParserConfig(data=scene, downscale_factor=4, train_views=(1, 3)).setup().get_dataparser_outputs("train")
+    assert int(four.cameras.width[0, 0]) == 320 and torch.allclose(four.cameras.fx[:, 0], torch.tensor([36.0 * 8] * 2))
+    assert "training at 1/" not in capsys.readouterr().out
+
+
+def test_a_read_only_capture_caches_its_copies_in_the_users_cache(tmp_path, monkeypatch, capsys):
+    scene = tmp_path / "capture"
+    fx.write_llff_photos(scene)
+    for folder in (scene, scene / "images"):  # read-only as a dataset mount (root could still write: it must not)
+        folder.chmod(0o555)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "user"))
+    train = LLFFDataParserConfig(data=scene, train_views=(1, 3)).setup().get_dataparser_outputs("train")
+    assert all(p.is_relative_to(tmp_path / "user" / "frugalnerf") and p.is_file() for p in train.image_filenames)
+    said = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
+    assert said.count("cannot be written: its caches go to") == 1 and f"{scene} cannot be written" in said
+    assert sorted(p.name for p in scene.iterdir()) == ["images", "poses_bounds.npy"]  # nothing written there
+    for folder in (scene, scene / "images"):
+        folder.chmod(0o755)  # so that pytest can remove it
 
 
 def test_dtu_intrinsics_are_scaled_to_the_loaded_images(tmp_path):

@@ -26,7 +26,7 @@ from nerfstudio.model_components.ray_generators import RayGenerator
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
-from frugalnerf_ns.cache import cache_file_name
+from frugalnerf_ns.cache import cache_file_name, scene_cache_dir
 from frugalnerf_ns.data.dataset import FrugalDataset
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.novel_cameras import cameras_at, novel_view_poses
@@ -79,7 +79,8 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     triangulation: TriangulationOptions = field(default_factory=TriangulationOptions)
     """Which triangulated points are kept."""
     sparse_cache_dir: Optional[Path] = None
-    """Folder of the cached points (default: frugalnerf_cache inside the scene's data folder). The cache is
+    """Folder of the cached points (default: frugalnerf_cache inside the scene's data folder, or this user's cache
+    folder, $XDG_CACHE_HOME/frugalnerf, when the data folder cannot be written). The cache is
     keyed by training views and image size and checked against the images and cameras before use."""
     mono_depth_model: Optional[Path] = None
     """Folder of a transformers depth-estimation model already on disk (DPT, Depth-Anything) for the optional
@@ -204,10 +205,11 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         return PixelSamplerConfig(num_rays_per_batch=num_rays_per_batch).setup()
 
     def _cache_path(self, kind: str) -> Path:
-        """Cache file for this training split and image size, in frugalnerf_cache next to the data (or
-        --pipeline.datamanager.sparse-cache-dir)."""
+        """Cache file for this training split and image size, in the scene's cache (``scene_cache_dir``: next to
+        the data, or this user's cache folder when the data cannot be written) or
+        --pipeline.datamanager.sparse-cache-dir."""
         height, width = self.warp_images.shape[1:3]
-        folder = self.config.sparse_cache_dir or Path(self.config.dataparser.data) / "frugalnerf_cache"
+        folder = self.config.sparse_cache_dir or scene_cache_dir(Path(self.config.dataparser.data), CONSOLE.print)
         names = [str(f) for f in self.train_dataparser_outputs.image_filenames]
         return folder / cache_file_name(names, width, height, kind)
 

@@ -47,7 +47,8 @@ class AutoDataParserConfig(FewShotDataParserConfig):
 
     _target: Type = field(default_factory=lambda: AutoDataParser)
     downscale_factor: Optional[int] = None
-    """Image downscale: LLFF reads images_<factor>/ (default 8); Blender halves 800x800 frames (default: to 400
+    """Image downscale: LLFF reads images_<factor>/ (default 8; a capture with full-size images/ only: to a long
+    side of 640 px or fewer, copies made once into the cache); Blender halves 800x800 frames (default: to 400
     wide); nerfstudio/COLMAP pass it on (default: auto)."""
     center_method: Literal["poses", "focus", "none"] = "poses"
     """nerfstudio/COLMAP data only: how nerfstudio centres the poses (focus: cameras looking at an object)."""

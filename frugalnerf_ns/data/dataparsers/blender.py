@@ -16,10 +16,8 @@ datamanager marks the scene as an object with a plain background.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Type
@@ -30,8 +28,9 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 
+from frugalnerf_ns.data.downscaled_images import downscaled_all
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images
 from frugalnerf_ns.data.splits import check_indices, dietnerf_train_views, load_split_table
@@ -77,7 +76,7 @@ class Blender(DataParser):
         factor = self.config.downscale_factor or max(1, full_width // PROTOCOL_WIDTH)
         if factor < 1:
             raise DataError(f"--downscale-factor must be >= 1 (got {factor})")
-        files = [downscaled(path, factor, data) for path in files] if factor > 1 else files
+        files = downscaled_all(files, factor, data, CONSOLE.print) if factor > 1 else files
         width, height = full_width // factor, full_height // factor
         focal = 0.5 * width / math.tan(0.5 * camera_angle(meta, data / SPLIT_FILES[source]))
         c2w = torch.tensor(np.stack([pose_of(frames[i], data / SPLIT_FILES[source], i) for i in indices]))
@@ -160,43 +159,6 @@ def frame_image(data: Path, frame: Dict, path: Path, index: int) -> Path:
         raise DataError(f"{path}: frame {index} has no file_path")
     file = (data / name).resolve()
     return file if file.suffix else file.with_name(file.name + ".png")
-
-
-def area_downscale(pixels: np.ndarray, factor: int) -> np.ndarray:
-    """Mean of every factor x factor block, channel by channel with straight (not premultiplied) alpha, as
-    the protocol's cv2.resize(INTER_AREA) does for an integer factor; rows and columns past the last whole
-    block are dropped."""
-    height, width = pixels.shape[0] // factor, pixels.shape[1] // factor
-    blocks = pixels[: height * factor, : width * factor].astype(np.float64)
-    blocks = blocks.reshape(height, factor, width, factor, -1).mean(axis=(1, 3))
-    return np.clip(np.round(blocks), 0, 255).astype(np.uint8)
-
-
-def downscaled(path: Path, factor: int, data: Path) -> Path:
-    """The image at 1/factor size, written once to frugalnerf_cache/ next to the data (a temporary folder
-    when the data is read-only) and reused while it is newer than the original."""
-    relative = path.relative_to(data.resolve()) if path.is_relative_to(data.resolve()) else Path(path.name)
-    for root in (data / "frugalnerf_cache", Path(tempfile.gettempdir()) / "frugalnerf_cache" / _folder_id(data)):
-        target = root / f"images_{factor}" / relative
-        if target.is_file() and target.stat().st_mtime >= path.stat().st_mtime:
-            return target
-        try:
-            with Image.open(path) as img:
-                pixels = np.asarray(img.convert("RGBA" if img.mode in ("RGBA", "LA", "P") else "RGB"))
-            target.parent.mkdir(parents=True, exist_ok=True)
-            tmp = target.with_name(target.stem + ".tmp.png")
-            Image.fromarray(area_downscale(pixels, factor)).save(tmp)
-            tmp.replace(target)
-            return target
-        except (UnidentifiedImageError, SyntaxError) as err:
-            raise DataError(f"image file {path} is unreadable or corrupt ({err})") from None
-        except OSError:
-            continue  # not writable here: try the next folder
-    raise DataError(f"could not write downscaled images of {path} (data folder and temporary folder not writable)")
-
-
-def _folder_id(data: Path) -> str:
-    return hashlib.sha1(str(data.resolve()).encode()).hexdigest()[:12]
 
 
 def is_blender_layout(data: Path) -> bool:

@@ -4,19 +4,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Type
+from typing import Optional, Tuple, Type
 
 import numpy as np
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
+from frugalnerf_ns.data.downscaled_images import downscaled_all, factor_for_long_side
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, list_images, split_indices
 from frugalnerf_ns.data.splits import every_nth, load_split_table
+
+DEFAULT_FACTOR = 8
+"""images_<N>/ read when --downscale-factor is not given and the folder exists."""
 
 # TensoRF's NDC scene box for LLFF (x and y slightly wider than [-1, 1] to cover the image corners).
 NDC_AABB = ((-1.5, -1.67, -1.0), (1.5, 1.67, 1.0))
@@ -27,8 +32,10 @@ class LLFFDataParserConfig(FewShotDataParserConfig):
     """LLFF layout: poses_bounds.npy (N x 17: 3x5 pose+hwf, near, far) and images_N/ in filename order."""
 
     _target: Type = field(default_factory=lambda: LLFF)
-    downscale_factor: int = 8
-    """Read images_<factor>/ (1: images/). The paper uses 4; 8 suits a CPU."""
+    downscale_factor: Optional[int] = None
+    """Read images_<factor>/ (1: images/); made once from images/ into the scene's cache where only the
+    full-size photos exist. Default: images_8/ if present (the paper uses 4; 8 suits a CPU), else images/ at the
+    smallest factor that brings the long side to 640 px or fewer."""
     ndc: bool = True
     """Model the scene in normalised device coordinates (forward-facing scenes)."""
     bd_factor: float = 0.75
@@ -41,19 +48,7 @@ class LLFF(DataParser):
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         data = Path(self.config.data)
         poses, bounds = load_poses_bounds(data / "poses_bounds.npy")
-        folder = data / ("images" if self.config.downscale_factor == 1 else f"images_{self.config.downscale_factor}")
-        if not folder.is_dir():
-            available = sorted(p.name for p in data.glob("images*") if p.is_dir())
-            raise DataError(f"{folder} not found (available: {', '.join(available) or 'none'}; set --downscale-factor)")
-        images = list_images(folder)
-        if len(images) != poses.shape[0]:
-            raise DataError(
-                f"{data / 'poses_bounds.npy'} has {poses.shape[0]} poses but {folder} has {len(images)} images"
-            )
-        with Image.open(images[0]) as img:
-            width, height = img.size
-        full_height, full_width, full_focal = poses[0, :, 4]
-        focal = float(full_focal) * width / float(full_width)
+        factor, images, make_copies = self._images(data, poses.shape[0], split)
 
         c2w = llff_to_opengl(poses[:, :, :4])
         scale = 1.0 / (bounds.min() * self.config.bd_factor)
@@ -67,12 +62,51 @@ class LLFF(DataParser):
         scene_views = table["scenes"].get(self.config.resolved_scene_name())
         views = self.config.split_views(len(images), every_nth(len(images), table["test_every"]), scene_views)
         indices = split_indices(split, views)
-        check_images([images[i] for i in indices])
+        files = [images[i] for i in indices]
+        check_images(files)
+        if make_copies:
+            # Copies named as in images/: the cache then holds an LLFF images_<factor>/ folder.
+            files = downscaled_all(files, factor, data, CONSOLE.print, base=data / "images")
+        with Image.open(files[0]) as img:
+            width, height = img.size
+        full_height, full_width, full_focal = poses[0, :, 4]
+        focal = float(full_focal) * width / float(full_width)
 
         return forward_facing_outputs(
-            [images[i] for i in indices], c2w[indices], c2w[views.train], (focal, focal, width / 2.0, height / 2.0),
+            files, c2w[indices], c2w[views.train], (focal, focal, width / 2.0, height / 2.0),
             (width, height), (float(bounds.min()), float(bounds.max())), self.config.ndc, float(scale),
         )
+
+
+    def _images(self, data: Path, num_poses: int, split: str) -> Tuple[int, list, bool]:
+        """(factor, every view's image file, whether they are the full-size photos to downscale by factor)."""
+        factor = self.config.downscale_factor
+        if factor is not None and factor < 1:
+            raise DataError(f"--downscale-factor must be >= 1 (got {factor})")
+        folder = data / ("images" if factor == 1 else f"images_{factor or DEFAULT_FACTOR}")
+        full = data / "images"
+        make_copies = not folder.is_dir() and full.is_dir()
+        if not folder.is_dir() and not make_copies:
+            available = sorted(p.name for p in data.glob("images*") if p.is_dir())
+            raise DataError(f"{folder} not found (available: {', '.join(available) or 'none'}; set --downscale-factor)")
+        images = list_images(full if make_copies else folder)
+        if len(images) != num_poses:
+            raise DataError(
+                f"{data / 'poses_bounds.npy'} has {num_poses} poses but {full if make_copies else folder} has "
+                f"{len(images)} images"
+            )
+        if make_copies and factor is None:
+            check_images(images[:1])
+            with Image.open(images[0]) as img:
+                width, height = img.size
+            factor = factor_for_long_side(width, height)
+            if split == "train":
+                CONSOLE.print(
+                    f"frugalnerf: {data} has full-size photos only ({width}x{height}): training at 1/{factor} "
+                    f"({width // factor}x{height // factor}); --downscale-factor sets another size"
+                )
+        factor = factor or DEFAULT_FACTOR
+        return factor, images, make_copies and factor > 1
 
 
 def forward_facing_outputs(

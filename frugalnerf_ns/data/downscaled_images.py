@@ -1,0 +1,76 @@
+"""Images at 1/factor size, made once from the full-size files into the scene's cache (``scene_cache_dir``):
+Blender frames at the protocol's half size, and LLFF or COLMAP captures that come with full-size ``images/``
+only (a phone's photos)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from frugalnerf_ns.cache import scene_cache_dir
+from frugalnerf_ns.data.input_checks import DataError
+
+CPU_LONG_SIDE = 640
+"""Longest image side the downscale chosen for full-size photos aims at (the CPU presets train at 504-640 px)."""
+
+
+def area_downscale(pixels: np.ndarray, factor: int) -> np.ndarray:
+    """Mean of every factor x factor block, channel by channel with straight (not premultiplied) alpha, as
+    the protocol's cv2.resize(INTER_AREA) does for an integer factor; rows and columns past the last whole
+    block are dropped."""
+    height, width = pixels.shape[0] // factor, pixels.shape[1] // factor
+    blocks = pixels[: height * factor, : width * factor].astype(np.float64)
+    blocks = blocks.reshape(height, factor, width, factor, -1).mean(axis=(1, 3))
+    return np.clip(np.round(blocks), 0, 255).astype(np.uint8)
+
+
+def factor_for_long_side(width: int, height: int, long_side: int = CPU_LONG_SIDE) -> int:
+    """The smallest integer downscale that brings the longer side to ``long_side`` pixels or fewer."""
+    return max(1, math.ceil(max(width, height) / long_side))
+
+
+def _target(path: Path, factor: int, data: Path, say: Callable[[str], None], base: Optional[Path] = None) -> Path:
+    """Where the copy goes: ``images_<factor>/`` in the cache, under the path relative to ``base`` (default
+    ``data``)."""
+    base = (base or data).resolve()
+    relative = path.resolve().relative_to(base) if path.resolve().is_relative_to(base) else Path(path.name)
+    return scene_cache_dir(data, say) / f"images_{factor}" / relative.with_suffix(".png")
+
+
+def downscaled(
+    path: Path, factor: int, data: Path, say: Callable[[str], None] = print, base: Optional[Path] = None
+) -> Path:
+    """The image at 1/factor size (``area_downscale``), written once to ``images_<factor>/`` in the scene's
+    cache (under its path relative to ``base``, default ``data``) and reused while it is newer than the
+    original."""
+    target = _target(path, factor, data, say, base)
+    if target.is_file() and target.stat().st_mtime >= path.stat().st_mtime:
+        return target
+    try:
+        with Image.open(path) as img:
+            pixels = np.asarray(img.convert("RGBA" if img.mode in ("RGBA", "LA", "P") else "RGB"))
+    except (UnidentifiedImageError, SyntaxError, OSError) as err:
+        raise DataError(f"image file {path} is unreadable or corrupt ({err})") from None
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_name(target.stem + ".tmp.png")
+        Image.fromarray(area_downscale(pixels, factor)).save(tmp)
+        tmp.replace(target)
+    except OSError as err:
+        raise DataError(f"could not write the downscaled copy of {path} to {target} ({err})") from None
+    return target
+
+
+def downscaled_all(
+    paths: Sequence[Path], factor: int, data: Path, say: Callable[[str], None] = print, base: Optional[Path] = None
+) -> list:
+    """``downscaled`` for each path, with one progress line when some have to be made."""
+    missing = sum(not _target(p, factor, data, say, base).is_file() for p in paths)
+    if missing:
+        cache = scene_cache_dir(data, say) / f"images_{factor}"
+        say(f"frugalnerf: making {missing} image(s) at 1/{factor} size in {cache} (once)")
+    return [downscaled(p, factor, data, say, base) for p in paths]
