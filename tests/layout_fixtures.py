@@ -166,13 +166,15 @@ def closest_points(o1, d1, o2, d2):
     return o1 + s * d1, o2 + t * d2, s, t
 
 
-def write_colmap(root: Path, count: int = 10) -> List[Tuple[float, float]]:
-    """COLMAP binary model in sparse/0 (PINHOLE cameras, one 3D point) next to images/."""
+def write_colmap(root: Path, count: int = 10, scale: int = 1) -> List[Tuple[float, float]]:
+    """COLMAP binary model in sparse/0 (PINHOLE cameras, one 3D point) next to images/ (``scale`` x 40x30
+    images and intrinsics: a capture at full size)."""
     from nerfstudio.data.utils import colmap_parsing_utils as cpu
 
     cameras, images, pixels = {}, {}, []
     for i, (K, w2c) in enumerate(opencv_cameras(count, forward_facing=False)):
-        cameras[i + 1] = cpu.Camera(id=i + 1, model="PINHOLE", width=WIDTH, height=HEIGHT,
+        K[:2] *= scale
+        cameras[i + 1] = cpu.Camera(id=i + 1, model="PINHOLE", width=WIDTH * scale, height=HEIGHT * scale,
                                     params=np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
         images[i + 1] = cpu.Image(id=i + 1, qvec=cpu.rotmat2qvec(w2c[:3, :3]), tvec=w2c[:3, 3], camera_id=i + 1,
                                   name=f"img_{i:03d}.png", xys=np.zeros((0, 2)), point3D_ids=np.zeros(0, dtype=int))
@@ -184,5 +186,12 @@ def write_colmap(root: Path, count: int = 10) -> List[Tuple[float, float]]:
     cpu.write_cameras_binary(cameras, sparse / "cameras.bin")
     cpu.write_images_binary(images, sparse / "images.bin")
     cpu.write_points3D_binary(points, sparse / "points3D.bin")
-    write_images(root / "images", [f"img_{i:03d}.png" for i in range(count)])
+    write_images(root / "images", [f"img_{i:03d}.png" for i in range(count)], size=(WIDTH * scale, HEIGHT * scale))
     return pixels
+
+
+def write_colmap_photos(root: Path, count: int = 10, scale: int = 32) -> List[Tuple[float, float]]:
+    """``write_colmap`` at full size (1280x960): pixels in the units of the parser's default copies (640x480)."""
+    pixels = write_colmap(root, count, scale)
+    factor = math.ceil(WIDTH * scale / 640)
+    return [(u / factor, v / factor) for u, v in pixels]

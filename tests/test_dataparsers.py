@@ -32,6 +32,8 @@ LAYOUTS = {
     "realestate": (fx.write_realestate, lambda d: RealEstateDataParserConfig(data=d, num_train_views=4)),
     "colmap": (fx.write_colmap, lambda d: FewShotColmapDataParserConfig(
         data=d, colmap_path=Path("sparse/0"), train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
+    "colmap photos only": (fx.write_colmap_photos, lambda d: FewShotColmapDataParserConfig(
+        data=d, colmap_path=Path("sparse/0"), train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "nerfstudio": (fx.write_nerfstudio, lambda d: FewShotNerfstudioDataParserConfig(
         data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
 }
@@ -112,6 +114,22 @@ def test_a_read_only_capture_caches_its_copies_in_the_users_cache(tmp_path, monk
     assert sorted(p.name for p in scene.iterdir()) == ["images", "poses_bounds.npy"]  # nothing written there
     for folder in (scene, scene / "images"):
         folder.chmod(0o755)  # so that pytest can remove it
+
+
+def test_colmap_photos_are_read_from_the_cache_or_from_images_n_beside_them(tmp_path, capsys):
+    scene = tmp_path / "colmap"
+    fx.write_colmap_photos(scene)
+    config = lambda **kw: FewShotColmapDataParserConfig(data=scene, colmap_path=Path("sparse/0"), **kw)  # noqa: E731
+    train = config(train_views=(1, 3)).setup().get_dataparser_outputs("train")
+    said = " ".join(capsys.readouterr().out.split())
+    assert "1280x960 photos: training at 1/2 (640x480)" in said and "making 10 image(s)" in said
+    assert all(p.parent == scene / "frugalnerf_cache" / "images_2" for p in train.image_filenames)
+    assert int(train.cameras.width[0, 0]) == 640 and torch.allclose(train.cameras.fx[:, 0], torch.tensor([36.0 * 16] * 2))
+    # A complete images_4/ beside images/ (as ns-process-data makes them) is read as it is.
+    fx.write_images(scene / "images_4", [f"img_{i:03d}.png" for i in range(10)], size=(320, 240))
+    four = config(train_views=(1, 3), downscale_factor=4).setup().get_dataparser_outputs("train")
+    assert all(p.parent == scene / "images_4" for p in four.image_filenames)
+    assert int(four.cameras.width[0, 0]) == 320 and torch.allclose(four.cameras.fx[:, 0], torch.tensor([36.0 * 8] * 2))
 
 
 def test_dtu_intrinsics_are_scaled_to_the_loaded_images(tmp_path):

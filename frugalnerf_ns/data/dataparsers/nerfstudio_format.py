@@ -16,9 +16,12 @@ import torch
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio
+from nerfstudio.utils.rich_utils import CONSOLE
+from PIL import Image
 
+from frugalnerf_ns.data.downscaled_images import downscaled_all, factor_for_long_side
 from frugalnerf_ns.data.input_checks import CheckedNerfstudio, DataError, FrugalNerfstudioDataParserConfig, check_scene_folder
-from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, split_indices
+from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, split_indices
 from frugalnerf_ns.data.splits import every_nth
 
 
@@ -79,11 +82,53 @@ class FewShotColmapDataParserConfig(ColmapDataParserConfig, FewShotDataParserCon
     _target: Type = field(default_factory=lambda: FewShotColmap)
 
 
-class FewShotColmap(ColmapDataParser):
+class CachedDownscaleColmap(ColmapDataParser):
+    """nerfstudio's COLMAP parser, except for the images it reads at a downscale: nerfstudio picks a factor for
+    1600 px, asks on the terminal and writes ffmpeg copies next to the data (a prompt that stops a batch run, a
+    binary a machine may lack, a folder that may be read-only). Here the factor is --downscale-factor, or the
+    smallest that brings the long side to 640 px or fewer (said in one line); an ``images_<factor>/`` folder
+    beside ``images/`` is read when it is complete, else copies are made once into the scene's cache."""
+
+    def _setup_downscale_factor(self, image_filenames, mask_filenames, depth_filenames):
+        images_dir = Path(self.config.data) / self.config.images_path
+        if self._downscale_factor is None:
+            factor = self.config.downscale_factor
+            if factor is None:
+                check_images(image_filenames[:1])
+                with Image.open(image_filenames[0]) as img:
+                    width, height = img.size
+                factor = factor_for_long_side(width, height)
+                if factor > 1:
+                    CONSOLE.print(f"frugalnerf: {images_dir} holds {width}x{height} photos: training at 1/{factor} "
+                                  f"({width // factor}x{height // factor}); --downscale-factor sets another size")
+            if factor < 1:
+                raise DataError(f"--downscale-factor must be >= 1 (got {factor})")
+            self._downscale_factor = int(factor)
+        factor = self._downscale_factor
+        if factor == 1:
+            return image_filenames, mask_filenames, depth_filenames, factor
+        def beside(files: List[Path], folder: Path) -> List[Path]:  # nerfstudio's names: <folder>_<factor>/...
+            return [folder.parent / f"{folder.name}_{factor}" / Path(f).relative_to(folder) for f in files]
+
+        if all(f.is_file() for f in beside(image_filenames, images_dir)):
+            image_filenames = beside(image_filenames, images_dir)
+            for files, sub in ((mask_filenames, self.config.masks_path), (depth_filenames, self.config.depths_path)):
+                if files:
+                    files[:] = beside(files, Path(self.config.data) / sub)  # type: ignore[operator]
+        else:
+            for kind, files in (("masks", mask_filenames), ("depths", depth_filenames)):
+                if files:
+                    raise DataError(f"{images_dir}: {kind} are read at full size only; pass --downscale-factor 1 "
+                                    f"or make images_{factor}/ and {kind}_{factor}/ beside them")
+            image_filenames = downscaled_all(image_filenames, factor, Path(self.config.data), CONSOLE.print, base=images_dir)
+        return image_filenames, mask_filenames, depth_filenames, factor
+
+
+class FewShotColmap(CachedDownscaleColmap):
     config: FewShotColmapDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs):
         if not wants_few_shot(self.config):
             return super()._generate_dataparser_outputs(split, **kwargs)
-        parser = ColmapDataParser(dataclasses.replace(self.config, eval_mode="all"))
+        parser = CachedDownscaleColmap(dataclasses.replace(self.config, eval_mode="all"))
         return few_shot_subset(self.config, parser._generate_dataparser_outputs("train"), split)
