@@ -1,5 +1,6 @@
 """The shared scorer of ``frugalnerf-bench scenes`` and the sweep runner: masked rendering is exact, full scale only is the same."""
 
+import pytest
 import torch
 from nerfstudio.cameras.cameras import Cameras, CameraType
 
@@ -54,3 +55,17 @@ def test_mean_scores_average_each_metric_over_the_views_that_have_it():
 
     views = [{"psnr": 10.0, "ssim": 0.5, "lpips": 0.2}, {"psnr": 20.0, "ssim": 0.7}]
     assert mean_scores(views) == {"psnr": 15.0, "ssim": 0.6, "lpips": 0.2}
+
+
+@pytest.mark.parametrize("args, words", [
+    (["eval", "--help"], "usage: python -m frugalnerf_ns.tools.offline_tools eval"),
+    (["eval", "no/such/config.yml"], "frugalnerf: error: no/such/config.yml is not a run's config.yml"),
+    (["eval", __file__, "last"], "frugalnerf: error: steps must be whole numbers, got last"),
+])
+def test_eval_with_bad_arguments_is_one_line(args, words):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "frugalnerf_ns.tools.offline_tools", *args], capture_output=True, text=True)
+    assert done.returncode == 1 and words in done.stderr and "Traceback" not in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1

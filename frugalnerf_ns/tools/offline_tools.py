@@ -128,6 +128,13 @@ def main() -> None:
         sys.argv = ["ns-train", *rest]
         entrypoint()
     else:
+        usage = "usage: python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [step ...]"
+        if not rest or rest[0] in ("-h", "--help"):
+            sys.exit(usage)
+        if not Path(rest[0]).is_file():
+            sys.exit(f"frugalnerf: error: {rest[0]} is not a run's config.yml ({usage})")
+        if not all(s.isdigit() for s in rest[1:]):
+            sys.exit(f"frugalnerf: error: steps must be whole numbers, got {' '.join(rest[1:])} ({usage})")
         # One line per checkpoint step asked for (the latest without steps), in one process: nerfstudio's
         # start-up costs more than scoring a few small test views.
         for step in [int(s) for s in rest[1:]] or [None]:
