@@ -3,7 +3,7 @@ down -z; camera-to-world 3x4). Pure numpy/torch, tested without nerfstudio."""
 
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 import torch
@@ -51,10 +51,11 @@ def average_pose(poses: np.ndarray) -> np.ndarray:
     return np.stack([right, up, back, center], axis=1)
 
 
-def recenter(poses: np.ndarray) -> np.ndarray:
-    """Express the poses in the frame of their average camera, so NDC's -z is the mean viewing direction."""
+def recenter(poses: np.ndarray, frame: Optional[np.ndarray] = None) -> np.ndarray:
+    """Express the poses in the frame of the average camera of ``frame`` (default: the poses themselves), so
+    NDC's -z is that mean viewing direction."""
     avg = np.eye(4)
-    avg[:3] = average_pose(poses)
+    avg[:3] = average_pose(poses if frame is None else frame)
     homogeneous = np.concatenate([poses[:, :3, :4], np.tile([[[0, 0, 0, 1.0]]], (poses.shape[0], 1, 1))], axis=1)
     return (np.linalg.inv(avg) @ homogeneous)[:, :3]
 

@@ -15,6 +15,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
+from frugalnerf_ns.geometry.scene_analysis import classify_camera_layout
 from frugalnerf_ns.data.downscaled_images import downscaled_all, factor_for_long_side
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, list_images, split_indices
@@ -54,13 +55,23 @@ class LLFF(DataParser):
         scale = 1.0 / (bounds.min() * self.config.bd_factor)
         c2w[:, :, 3] *= scale
         bounds = bounds * scale
-        # The average camera over all frames defines the frame: it is a choice of coordinates (TensoRF and
-        # the paper do the same), no test pixel is used.
-        c2w = recenter(c2w)
-
         table = load_split_table()["llff"]
         scene_views = table["scenes"].get(self.config.resolved_scene_name())
         views = self.config.split_views(len(images), every_nth(len(images), table["test_every"]), scene_views)
+        # The average camera over all frames defines the frame: it is a choice of coordinates (TensoRF and
+        # the paper do the same), no test pixel is used. NDC looks along that camera, so a capture that is not
+        # forward-facing as a whole (a phone sweeping around a table) would be seen from the side by a split's
+        # few forward-facing cameras: there the training cameras' average defines it.
+        capture = classify_camera_layout(torch.from_numpy(c2w).float())
+        if capture.scene_type == "forward-facing":
+            c2w = recenter(c2w)
+        else:
+            c2w = recenter(c2w, frame=c2w[views.train])
+            if split == "train":
+                CONSOLE.print(
+                    f"frugalnerf: {data}: the capture's cameras spread {capture.spread_degrees:.0f} deg (not "
+                    "forward-facing): its frame is the training cameras' average camera"
+                )
         indices = split_indices(split, views)
         files = [images[i] for i in indices]
         check_images(files)
