@@ -60,10 +60,11 @@ def opengl_c2w(w2c: np.ndarray) -> np.ndarray:
     return c2w
 
 
-def write_llff(root: Path, count: int = 10, factor: int = 2) -> List[Tuple[float, float]]:
-    """poses_bounds.npy at full resolution (factor x the images in images_<factor>/)."""
+def write_llff(root: Path, count: int = 10, factor: int = 2, forward_facing: bool = True) -> List[Tuple[float, float]]:
+    """poses_bounds.npy at full resolution (factor x the images in images_<factor>/); ``forward_facing`` False:
+    the cameras circle the point (an arc of ~80 degrees)."""
     rows, pixels = [], []
-    for K, w2c in opencv_cameras(count, forward_facing=True):
+    for K, w2c in opencv_cameras(count, forward_facing=forward_facing):
         c2w = opengl_c2w(w2c)  # columns: right, up, back
         llff = np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3]], axis=1)  # down, right, back
         hwf = np.array([HEIGHT * factor, WIDTH * factor, K[0, 0] * factor])

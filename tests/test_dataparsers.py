@@ -116,6 +116,30 @@ def test_a_read_only_capture_caches_its_copies_in_the_users_cache(tmp_path, monk
         folder.chmod(0o755)  # so that pytest can remove it
 
 
+def test_an_llff_capture_that_sweeps_around_gets_its_frame_from_the_training_cameras(tmp_path, capsys):
+    from frugalnerf_ns.geometry.scene_analysis import viewing_directions
+
+    def mean_direction(cameras):
+        mean = viewing_directions(cameras.camera_to_worlds).mean(0)
+        return (mean / mean.norm()).float()
+
+    fx.write_llff(tmp_path / "sweep", forward_facing=False)
+    train = LLFFDataParserConfig(data=tmp_path / "sweep", downscale_factor=2, train_views=(0, 1), test_views=(5, 9),
+                                 ndc=False).setup().get_dataparser_outputs("train")
+    # NDC looks along -z of the frame: the training cameras at one end of the arc look along it ...
+    assert float(mean_direction(train.cameras) @ torch.tensor([0.0, 0.0, -1.0])) > 0.9998  # within ~1 degree
+    assert "the frame is the training cameras' average camera" in " ".join(capsys.readouterr().out.split())
+    # ... and a forward-facing capture keeps the paper's frame, the average of all its cameras.
+    fx.write_llff(tmp_path / "forward")
+    every = LLFFDataParserConfig(data=tmp_path / "forward", downscale_factor=2, train_views=(0, 1), test_views=(
+        2, 3, 4, 5, 6, 7, 8, 9)).setup()
+    cameras = [every.get_dataparser_outputs(split).cameras for split in ("train", "test")]
+    joined = torch.cat([c.camera_to_worlds for c in cameras])
+    assert float(mean_direction(type(cameras[0])(camera_to_worlds=joined, fx=1.0, fy=1.0, cx=1.0, cy=1.0)) @
+                 torch.tensor([0.0, 0.0, -1.0])) > 0.99999
+    assert "training cameras' average" not in capsys.readouterr().out
+
+
 def test_colmap_photos_are_read_from_the_cache_or_from_images_n_beside_them(tmp_path, capsys):
     scene = tmp_path / "colmap"
     fx.write_colmap_photos(scene)

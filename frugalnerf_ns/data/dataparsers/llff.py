@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Tuple, Type
+from typing import Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch
@@ -15,7 +15,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
-from frugalnerf_ns.geometry.scene_analysis import classify_camera_layout
+from frugalnerf_ns.geometry.scene_analysis import FORWARD_FACING_MAX_SPREAD, viewing_directions
 from frugalnerf_ns.data.downscaled_images import downscaled_all, factor_for_long_side
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, list_images, split_indices
@@ -59,18 +59,19 @@ class LLFF(DataParser):
         scene_views = table["scenes"].get(self.config.resolved_scene_name())
         views = self.config.split_views(len(images), every_nth(len(images), table["test_every"]), scene_views)
         # The average camera over all frames defines the frame: it is a choice of coordinates (TensoRF and
-        # the paper do the same), no test pixel is used. NDC looks along that camera, so a capture that is not
-        # forward-facing as a whole (a phone sweeping around a table) would be seen from the side by a split's
-        # few forward-facing cameras: there the training cameras' average defines it.
-        capture = classify_camera_layout(torch.from_numpy(c2w).float())
-        if capture.scene_type == "forward-facing":
+        # the paper do the same), no test pixel is used. NDC looks along that camera, so where the training
+        # cameras look elsewhere (a phone sweeping 180 degrees around a table, a split at one end of it) NDC
+        # would see them from the side: there the training cameras' average defines it.
+        off_axis = frame_off_axis_degrees(c2w, views.train)
+        if off_axis <= FORWARD_FACING_MAX_SPREAD:
             c2w = recenter(c2w)
         else:
             c2w = recenter(c2w, frame=c2w[views.train])
             if split == "train":
                 CONSOLE.print(
-                    f"frugalnerf: {data}: the capture's cameras spread {capture.spread_degrees:.0f} deg (not "
-                    "forward-facing): its frame is the training cameras' average camera"
+                    f"frugalnerf: {data}: a training camera looks {off_axis:.0f} deg away from the capture's mean "
+                    f"direction (forward-facing: <= {FORWARD_FACING_MAX_SPREAD:.0f}): the frame is the training "
+                    "cameras' average camera"
                 )
         indices = split_indices(split, views)
         files = [images[i] for i in indices]
@@ -118,6 +119,15 @@ class LLFF(DataParser):
                 )
         factor = factor or DEFAULT_FACTOR
         return factor, images, make_copies and factor > 1
+
+
+def frame_off_axis_degrees(camera_to_worlds: np.ndarray, train: Sequence[int]) -> float:
+    """Largest angle between a training camera's viewing direction and the mean viewing direction of all the
+    capture's cameras (whose average camera ``recenter`` makes the frame)."""
+    directions = viewing_directions(torch.from_numpy(camera_to_worlds).double())
+    mean = directions.mean(0)
+    mean = mean / mean.norm().clamp_min(1e-12)
+    return float(torch.rad2deg(torch.acos((directions[list(train)] @ mean).clamp(-1.0, 1.0))).max())
 
 
 def forward_facing_outputs(
