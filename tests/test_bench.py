@@ -68,3 +68,25 @@ def test_preset_pipeline_is_set_up_at_its_final_grid(procedural_scene):
     assert str(bad.value.code).startswith("frugalnerf-bench: unknown dataparser 'frugal-nope'")
 
 
+
+
+def test_scenes_without_the_asked_split_sit_out_a_run_of_all_scenes(tmp_path, capsys):
+    import yaml
+
+    from frugalnerf_ns.bench import scenes as bench_scenes
+
+    for name in ("paper", "capture"):
+        (tmp_path / name).mkdir()
+    config = {"data_root": str(tmp_path), "scenes": {
+        "paper": {"data": "paper", "parser": ["frugal-llff"], "views": {2: ["--train-views", "0", "1"]}, "preset": "frugalnerf-cpu"},
+        "capture": {"data": "capture", "parser": ["frugal-llff"], "views": {3: ["--train-views", "0", "1", "2"]},
+                    "preset": "frugalnerf-cpu"}},
+              "baselines": {"tensorf": {"args": ["--max-num-iterations", "1"]}}}
+    (tmp_path / "scenes.yaml").write_text(yaml.safe_dump(config))
+    # --only-baselines with no baselines: the plan is made (and checked), nothing trains.
+    bench_scenes.main(["--config", str(tmp_path / "scenes.yaml"), "--only-baselines", "--out", str(tmp_path / "out")])
+    assert "benchmark: skipping capture: it defines no 2-view split" in capsys.readouterr().out
+    # Named: an error before anything trains, not a skip.
+    with pytest.raises(SystemExit, match="scene 'capture' defines no 2-view split"):
+        bench_scenes.main(["--config", str(tmp_path / "scenes.yaml"), "--scenes", "capture", "--only-baselines",
+                           "--baselines", "tensorf", "--out", str(tmp_path / "out")])

@@ -18,8 +18,12 @@ def test_scene_config_uses_registered_presets_and_parsers():
     for name, scene in config["scenes"].items():
         assert scene["preset"] in methods, name
         assert scene["parser"][0] in parsers, name
-        # The paper's 2- and 3-view settings; NeRF-synthetic's few-shot protocol (DietNeRF, FreeNeRF) is 8 views.
-        assert ({8} if scene["parser"][0] == "frugal-blender" else {2, 3}) <= set(scene["views"]), name
+        # The paper's 2- and 3-view settings; NeRF-synthetic's few-shot protocol (DietNeRF, FreeNeRF) is 8 views;
+        # a capture of our own (captures/) has the splits its README names.
+        if scene["data"].startswith("captures/"):
+            assert scene["views"], name
+        else:
+            assert ({8} if scene["parser"][0] == "frugal-blender" else {2, 3}) <= set(scene["views"]), name
     assert set(config["baselines"]) >= {"tensorf", "nerfacto"}
 
 

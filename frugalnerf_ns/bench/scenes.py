@@ -58,6 +58,10 @@ def main(argv: Optional[List[str]] = None) -> None:
     present = [n for n in names if scene_data(args.config, config, n, args.data_root).is_dir()]
     for name in sorted(set(names) - set(present)):
         print(f"benchmark: skipping {name}: its data is not on this machine")
+    if not args.scenes:  # all of them: a scene with its own splits only (a capture, lego) sits out other counts
+        for name in [n for n in present if not set(args.views) <= {int(k) for k in config["scenes"][n].get("views") or {}}]:
+            print(f"benchmark: skipping {name}: it defines no {'/'.join(map(str, args.views))}-view split")
+            present.remove(name)
     unknown = sorted(set(args.variants) - set(config.get("variants") or {}))
     if unknown:
         sys.exit(f"benchmark: unknown variants {unknown}; {args.config} has {sorted(config.get('variants') or {})}")
