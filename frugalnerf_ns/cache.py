@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import tempfile
 from pathlib import Path
 from typing import Callable, Dict, Optional, Sequence, Tuple
 
@@ -52,7 +53,12 @@ _chosen_cache_dirs: Dict[Path, Path] = {}
 def user_cache_root() -> Path:
     """This user's cache folder for scenes whose data folder cannot be written: $XDG_CACHE_HOME/frugalnerf
     (default ~/.cache/frugalnerf)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    base = os.environ.get("XDG_CACHE_HOME")
+    if not base:
+        try:
+            base = str(Path.home() / ".cache")
+        except RuntimeError:  # no home folder (a bare service account): the system's temporary folder
+            base = tempfile.gettempdir()
     return Path(base) / "frugalnerf"
 
 
