@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from frugalnerf_ns.cache import scene_cache_dir
-from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.data.input_checks import DataError, check_image_file
 
 CPU_LONG_SIDE = 640
 """Longest image side the downscale chosen for full-size photos aims at (the CPU presets train at 504-640 px)."""
@@ -31,6 +31,14 @@ def area_downscale(pixels: np.ndarray, factor: int) -> np.ndarray:
 def factor_for_long_side(width: int, height: int, long_side: int = CPU_LONG_SIDE) -> int:
     """The smallest integer downscale that brings the longer side to ``long_side`` pixels or fewer."""
     return max(1, math.ceil(max(width, height) / long_side))
+
+
+def photo_size_and_factor(photo: Path) -> Tuple[int, int, int]:
+    """(width, height, ``factor_for_long_side``) of a full-size photo (one clear line if it is unreadable)."""
+    check_image_file(photo, photo.name)
+    with Image.open(photo) as img:
+        width, height = img.size
+    return width, height, factor_for_long_side(width, height)
 
 
 def _target(path: Path, factor: int, data: Path, say: Callable[[str], None], base: Optional[Path] = None) -> Path:

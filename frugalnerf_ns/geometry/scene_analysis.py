@@ -45,6 +45,20 @@ def viewing_directions(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Float[Te
     return torch.nn.functional.normalize(-camera_to_worlds[:, :3, 2].double(), dim=-1)
 
 
+def largest_angle_to_mean_direction(
+    camera_to_worlds: Float[Tensor, "views 3 4"], subset: Optional[Sequence[int]] = None
+) -> float:
+    """Largest angle (degrees) between the viewing direction of a camera of ``subset`` (default: all) and the
+    mean viewing direction of all the cameras; 180 where the directions cancel out."""
+    directions = viewing_directions(camera_to_worlds)
+    mean = directions.mean(0)
+    if float(mean.norm()) < 1e-9:
+        return 180.0
+    chosen = directions if subset is None else directions[list(subset)]
+    cosines = (chosen @ (mean / mean.norm())).clamp(-1.0, 1.0)
+    return math.degrees(float(torch.acos(cosines).max()))
+
+
 def _axes_system(camera_to_worlds: Float[Tensor, "views 3 4"]) -> Tuple[Tensor, Tensor]:
     """sum_i (I - d_i d_i^T) and sum_i (I - d_i d_i^T) c_i: the normal equations of the point nearest every
     optical axis (camera centre c_i, viewing direction d_i)."""
@@ -111,14 +125,8 @@ def classify_camera_layout(
     - forward-facing: every viewing direction within ``forward_facing_max_spread`` degrees of the mean;
     - object: everything else (cameras converging on something).
     """
-    directions = viewing_directions(camera_to_worlds)
-    mean = directions.mean(0)
-    resultant = float(mean.norm())
-    if resultant < 1e-9:
-        spread = 180.0
-    else:
-        cosines = (directions @ (mean / mean.norm())).clamp(-1.0, 1.0)
-        spread = math.degrees(float(torch.acos(cosines).max()))
+    resultant = float(viewing_directions(camera_to_worlds).mean(0).norm())
+    spread = largest_angle_to_mean_direction(camera_to_worlds)
     focus = focus_point(camera_to_worlds)
     up = camera_to_worlds[:, :3, 1].double().mean(0)
     if float(up.norm()) < 1e-9:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence, Tuple, Type
+from typing import Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -15,8 +15,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
-from frugalnerf_ns.geometry.scene_analysis import FORWARD_FACING_MAX_SPREAD, viewing_directions
-from frugalnerf_ns.data.downscaled_images import downscaled_all, factor_for_long_side
+from frugalnerf_ns.geometry.scene_analysis import FORWARD_FACING_MAX_SPREAD, largest_angle_to_mean_direction
+from frugalnerf_ns.data.downscaled_images import downscaled_all, photo_size_and_factor
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, list_images, split_indices
 from frugalnerf_ns.data.splits import every_nth, load_split_table
@@ -62,7 +62,7 @@ class LLFF(DataParser):
         # the paper do the same), no test pixel is used. NDC looks along that camera, so where the training
         # cameras look elsewhere (a phone sweeping 180 degrees around a table, a split at one end of it) NDC
         # would see them from the side: there the training cameras' average defines it.
-        off_axis = frame_off_axis_degrees(c2w, views.train)
+        off_axis = largest_angle_to_mean_direction(torch.from_numpy(c2w), views.train)
         if off_axis <= FORWARD_FACING_MAX_SPREAD:
             c2w = recenter(c2w)
         else:
@@ -108,10 +108,7 @@ class LLFF(DataParser):
                 f"{len(images)} images"
             )
         if make_copies and factor is None:
-            check_images(images[:1])
-            with Image.open(images[0]) as img:
-                width, height = img.size
-            factor = factor_for_long_side(width, height)
+            width, height, factor = photo_size_and_factor(images[0])
             if split == "train":
                 CONSOLE.print(
                     f"frugalnerf: {data} has full-size photos only ({width}x{height}): training at 1/{factor} "
@@ -119,15 +116,6 @@ class LLFF(DataParser):
                 )
         factor = factor or DEFAULT_FACTOR
         return factor, images, make_copies and factor > 1
-
-
-def frame_off_axis_degrees(camera_to_worlds: np.ndarray, train: Sequence[int]) -> float:
-    """Largest angle between a training camera's viewing direction and the mean viewing direction of all the
-    capture's cameras (whose average camera ``recenter`` makes the frame)."""
-    directions = viewing_directions(torch.from_numpy(camera_to_worlds).double())
-    mean = directions.mean(0)
-    mean = mean / mean.norm().clamp_min(1e-12)
-    return float(torch.rad2deg(torch.acos((directions[list(train)] @ mean).clamp(-1.0, 1.0))).max())
 
 
 def forward_facing_outputs(

@@ -17,11 +17,10 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, ColmapDataParserConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio
 from nerfstudio.utils.rich_utils import CONSOLE
-from PIL import Image
 
-from frugalnerf_ns.data.downscaled_images import downscaled_all, factor_for_long_side
+from frugalnerf_ns.data.downscaled_images import downscaled_all, photo_size_and_factor
 from frugalnerf_ns.data.input_checks import CheckedNerfstudio, DataError, FrugalNerfstudioDataParserConfig, check_scene_folder
-from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, split_indices
+from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, split_indices
 from frugalnerf_ns.data.splits import every_nth
 
 
@@ -94,10 +93,7 @@ class CachedDownscaleColmap(ColmapDataParser):
         if self._downscale_factor is None:
             factor = self.config.downscale_factor
             if factor is None:
-                check_images(image_filenames[:1])
-                with Image.open(image_filenames[0]) as img:
-                    width, height = img.size
-                factor = factor_for_long_side(width, height)
+                width, height, factor = photo_size_and_factor(image_filenames[0])
                 if factor > 1:
                     CONSOLE.print(f"frugalnerf: {images_dir} holds {width}x{height} photos: training at 1/{factor} "
                                   f"({width // factor}x{height // factor}); --downscale-factor sets another size")
