@@ -6,9 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
-from PIL import Image
 
 from frugalnerf_ns.data.input_checks import DataError, check_scene_folder
 from tests.training_helpers import ns_train_main, preset_config
@@ -33,22 +31,10 @@ def assert_one_line_error(result: subprocess.CompletedProcess, *needles: str) ->
         assert needle in lines[0]
 
 
-def write_images(folder: Path, count: int) -> None:
-    folder.mkdir(parents=True, exist_ok=True)
-    for i in range(count):
-        Image.fromarray(np.full((8, 8, 3), 40 * i, dtype=np.uint8)).save(folder / f"img_{i}.png")
-
-
 def test_missing_folder(tmp_path):
     # The real ns-train binary: exit status 1 and one line on stderr (the other bad-input tests run ns-train's
     # main in this process and read the same line).
     assert_one_line_error(ns_train(tmp_path / "nope", tmp_path), "does not exist", "nope")
-
-
-def test_images_without_cameras(tmp_path):
-    write_images(tmp_path / "scene" / "images", 3)
-    said = ns_train_main(preset_config("frugalnerf-tiny", tmp_path / "scene", tmp_path / "out"))
-    assert said.startswith("frugalnerf: error:") and "3 images but no cameras" in said and "ns-process-data" in said
 
 
 def test_single_image(tmp_path, procedural_scene):

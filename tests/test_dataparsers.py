@@ -200,7 +200,8 @@ def test_auto_names_the_layouts_it_looked_for(tmp_path):
     with pytest.raises(DataError) as err:
         detect_layout(tmp_path / "x")
     message = str(err.value)
-    for needle in ("2 images but no cameras", "LLFF", "DTU", "RealEstate", "transforms.json", "COLMAP"):
+    for needle in ("2 images, none where a layout reads them", "LLFF", "DTU", "RealEstate", "transforms.json", "COLMAP",
+                   "photos without cameras: JPEG/PNG photos in the folder or in images/"):
         assert needle in message
 
 

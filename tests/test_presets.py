@@ -17,7 +17,7 @@ def test_entry_points_register_the_methods():
     assert set(presets.load_preset_table()) <= names
     assert {"frugalnerf", "frugalnerf-fast", "frugalnerf-quality", "frugalnerf-tiny", "frugalnerf-dtu"} <= names
     parsers = {ep.name for ep in entry_points(group="nerfstudio.dataparser_configs")}
-    assert {"frugal-auto", "frugal-llff", "frugal-dtu", "frugal-realestate", "frugal-nerfstudio", "frugal-colmap"} <= parsers
+    assert {"frugal-auto", "frugal-llff", "frugal-dtu", "frugal-realestate", "frugal-nerfstudio", "frugal-colmap", "frugal-photos"} <= parsers
 
 
 def test_nerfstudio_discovers_the_methods():

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 from frugalnerf_ns.cache import scene_cache_dir
 from frugalnerf_ns.data.input_checks import DataError, check_image_file
@@ -41,26 +41,35 @@ def photo_size_and_factor(photo: Path) -> Tuple[int, int, int]:
     return width, height, factor_for_long_side(width, height)
 
 
-def _target(path: Path, factor: int, data: Path, say: Callable[[str], None], base: Optional[Path] = None) -> Path:
-    """Where the copy goes: ``images_<factor>/`` in the cache, under the path relative to ``base`` (default
-    ``data``)."""
+def _target(
+    path: Path, factor: int, data: Path, say: Callable[[str], None], base: Optional[Path] = None, upright: bool = False
+) -> Path:
+    """Where the copy goes: ``images_<factor>/`` (``images_<factor>_upright/``) in the cache, under the path
+    relative to ``base`` (default ``data``)."""
     base = (base or data).resolve()
     relative = path.resolve().relative_to(base) if path.resolve().is_relative_to(base) else Path(path.name)
-    return scene_cache_dir(data, say) / f"images_{factor}" / relative.with_suffix(".png")
+    return scene_cache_dir(data, say) / _folder(factor, upright) / relative.with_suffix(".png")
+
+
+def _folder(factor: int, upright: bool) -> str:
+    return f"images_{factor}_upright" if upright else f"images_{factor}"
 
 
 def downscaled(
-    path: Path, factor: int, data: Path, say: Callable[[str], None] = print, base: Optional[Path] = None
+    path: Path, factor: int, data: Path, say: Callable[[str], None] = print, base: Optional[Path] = None,
+    upright: bool = False,
 ) -> Path:
     """The image at 1/factor size (``area_downscale``), written once to ``images_<factor>/`` in the scene's
     cache (under its path relative to ``base``, default ``data``) and reused while it is newer than the
-    original."""
-    target = _target(path, factor, data, say, base)
+    original. ``upright``: turned as its EXIF orientation says first (photos without cameras; posed layouts'
+    cameras refer to the stored pixels), in ``images_<factor>_upright/``."""
+    target = _target(path, factor, data, say, base, upright)
     if target.is_file() and target.stat().st_mtime >= path.stat().st_mtime:
         return target
     try:
         with Image.open(path) as img:
-            pixels = np.asarray(img.convert("RGBA" if img.mode in ("RGBA", "LA", "P") else "RGB"))
+            turned = ImageOps.exif_transpose(img) if upright else img
+            pixels = np.asarray(turned.convert("RGBA" if img.mode in ("RGBA", "LA", "P") else "RGB"))
     except (UnidentifiedImageError, SyntaxError, OSError) as err:
         raise DataError(f"image file {path} is unreadable or corrupt ({err})") from None
     try:
@@ -74,11 +83,12 @@ def downscaled(
 
 
 def downscaled_all(
-    paths: Sequence[Path], factor: int, data: Path, say: Callable[[str], None] = print, base: Optional[Path] = None
+    paths: Sequence[Path], factor: int, data: Path, say: Callable[[str], None] = print, base: Optional[Path] = None,
+    upright: bool = False,
 ) -> list:
     """``downscaled`` for each path, with one progress line when some have to be made."""
-    missing = sum(not _target(p, factor, data, say, base).is_file() for p in paths)
+    missing = sum(not _target(p, factor, data, say, base, upright).is_file() for p in paths)
     if missing:
-        cache = scene_cache_dir(data, say) / f"images_{factor}"
+        cache = scene_cache_dir(data, say) / _folder(factor, upright)
         say(f"frugalnerf: making {missing} image(s) at 1/{factor} size in {cache} (once)")
-    return [downscaled(p, factor, data, say, base) for p in paths]
+    return [downscaled(p, factor, data, say, base, upright) for p in paths]

@@ -28,7 +28,7 @@ def check_scene_folder(data: Path) -> Path:
     if not transforms.is_file():
         images = [p for p in data.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES] if data.is_dir() else []
         hint = (
-            f"{len(images)} images but no cameras; run ns-process-data (COLMAP) to estimate them"
+            f"{len(images)} images but no cameras; frugal-auto (the default dataparser) estimates them from the photos"
             if images
             else "no images and no cameras"
         )

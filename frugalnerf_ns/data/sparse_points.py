@@ -388,14 +388,22 @@ def training_sparse_depth(
             save_sparse_depth(cache_path, sparse, key)
         except OSError as err:
             say(f"frugalnerf: could not cache sparse points in {cache_path} ({err}); they stay in memory.")
+    return usable_points(sparse, box, min_points, say, "triangulating the training views")
+
+
+def usable_points(
+    sparse: SparseDepth, box: Optional[Float[Tensor, "2 3"]], min_points: int, say: Callable[[str], None], source: str
+) -> Optional[SparseDepth]:
+    """The points inside a metric ``box`` (None: NDC, no cut), or None, said, when fewer than ``min_points``
+    remain (training goes on without L_sd). ``source`` says where they came from."""
     if box is not None:
         sparse = points_inside_box(sparse, box)
     if sparse.num_points < min_points:
         say(
-            f"[bold yellow]frugalnerf: triangulating the training views found {sparse.num_points} points "
+            f"[bold yellow]frugalnerf: {source} found {sparse.num_points} points "
             f"(fewer than --pipeline.datamanager.min-sparse-points {min_points}): training goes on without the "
             "sparse depth loss."
         )
         return None
-    say(f"frugalnerf: {sparse.num_points} sparse points from the training views supervise depth (L_sd).")
+    say(f"frugalnerf: {sparse.num_points} sparse points from {source} supervise depth (L_sd).")
     return sparse

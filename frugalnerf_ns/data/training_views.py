@@ -17,7 +17,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from frugalnerf_ns.data.mono_depth import load_or_predict
-from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, training_sparse_depth
+from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, training_sparse_depth, usable_points
 from frugalnerf_ns.geometry.scene_analysis import (
     CameraLayout,
     SceneType,
@@ -68,8 +68,14 @@ def training_view_points(
 ) -> Optional[SparseDepth]:
     """Triangulated points of the training views on ``device``, from the cache when it matches; None when fewer
     than ``min_points``."""
-    images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in rgb]
     metadata = outputs.metadata or {}
+    estimated = metadata.get("sparse_depth")
+    if estimated is not None:
+        # Photos without cameras: the points their cameras were estimated with (no second triangulation).
+        box = outputs.scene_box.aabb if metadata.get("ndc") is None else None
+        sparse = usable_points(estimated, box, min_points, CONSOLE.print, "estimating the photos' cameras")
+        return None if sparse is None else SparseDepth(*(t.float().to(device) if t.is_floating_point() else t.to(device) for t in sparse))
+    images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in rgb]
     near_far = metadata.get("near_far")
     sparse = training_sparse_depth(
         images, cameras.camera_to_worlds.double(), intrinsics.double().cpu(),

@@ -18,6 +18,7 @@ from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
     FewShotColmapDataParserConfig,
     FewShotNerfstudioDataParserConfig,
 )
+from frugalnerf_ns.data.dataparsers.photos import PhotosDataParserConfig, is_photo_folder
 from frugalnerf_ns.data.dataparsers.realestate import REALESTATE_FILES, RealEstateDataParserConfig
 
 
@@ -38,12 +39,15 @@ LAYOUTS: List[Tuple[str, str, Callable[[Path], bool], Type[DataParserConfig]]] =
     ("RealEstate-10K", f"{' and '.join(REALESTATE_FILES)} with rgb/", lambda d: (d / "rgb").is_dir()
      and all((d / f).is_file() for f in REALESTATE_FILES), RealEstateDataParserConfig),
     ("COLMAP", "sparse/0/images.bin (or colmap/sparse/0)", _is_colmap, FewShotColmapDataParserConfig),
+    # Last: any folder of images without cameras (the cameras are estimated from the photos).
+    ("photos without cameras", "JPEG/PNG photos in the folder or in images/", is_photo_folder, PhotosDataParserConfig),
 ]
 
 
 @dataclass
 class AutoDataParserConfig(FewShotDataParserConfig):
-    """Detects the layout of --data (nerfstudio, Blender, LLFF, DTU/IDR, RealEstate-10K, COLMAP) and parses it."""
+    """Detects the layout of --data (nerfstudio, Blender, LLFF, DTU/IDR, RealEstate-10K, COLMAP, or photos without
+    cameras: estimated with pycolmap) and parses it."""
 
     _target: Type = field(default_factory=lambda: AutoDataParser)
     downscale_factor: Optional[int] = None
@@ -62,11 +66,8 @@ def detect_layout(data: Path) -> Tuple[str, Type[DataParserConfig]]:
             return name, config_type
     images = [p for p in data.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES] if data.is_dir() else []
     looked_for = "; ".join(f"{name}: {what}" for name, what, _, _ in LAYOUTS)
-    found = f"{len(images)} images but no cameras" if images else "no images and no cameras"
-    raise DataError(
-        f"{data} has {found} in a layout FrugalNeRF reads (looked for {looked_for}); "
-        "for images alone, run ns-process-data (COLMAP) to estimate cameras"
-    )
+    found = f"{len(images)} images, none where a layout reads them" if images else "no images and no cameras"
+    raise DataError(f"{data} has {found} (looked for {looked_for})")
 
 
 def layout_config(config: AutoDataParserConfig) -> Tuple[str, DataParserConfig]:

@@ -10,6 +10,7 @@ from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
     FewShotColmapDataParserConfig,
     FewShotNerfstudioDataParserConfig,
 )
+from frugalnerf_ns.data.dataparsers.photos import PhotosDataParserConfig
 from frugalnerf_ns.data.dataparsers.realestate import RealEstateDataParserConfig
 
 frugal_auto = DataParserSpecification(AutoDataParserConfig(), "detect the layout of --data (FrugalNeRF default)")
@@ -23,3 +24,6 @@ frugal_realestate = DataParserSpecification(
 )
 frugal_nerfstudio = DataParserSpecification(FewShotNerfstudioDataParserConfig(), "nerfstudio transforms.json, checked")
 frugal_colmap = DataParserSpecification(FewShotColmapDataParserConfig(), "COLMAP (images/ + sparse/0)")
+frugal_photos = DataParserSpecification(
+    PhotosDataParserConfig(), "a folder of 2-4 photos without cameras: cameras estimated with pycolmap, cached"
+)
