@@ -20,7 +20,7 @@ def test_installed_command_lists_every_subcommand_and_refuses_an_unknown_one():
     listed = subprocess.run([BENCH], capture_output=True, text=True)
     assert listed.returncode == 0
     names = [line.split()[0] for line in listed.stdout.splitlines() if line.startswith("  ")]
-    assert names == list(cli.SUBCOMMANDS) == ["scenes", "tradeoff", "vs-tensorf", "render", "viewer", "startup",
+    assert names == list(cli.SUBCOMMANDS) == ["scenes", "tradeoff", "vs-tensorf", "render", "viewer", "startup", "cameras",
                                               "model-size", "step", "profile", "gpu-check"]
     unknown = subprocess.run([BENCH, "bogus"], capture_output=True, text=True)
     assert unknown.returncode == 2 and unknown.stdout == ""
@@ -90,3 +90,19 @@ def test_scenes_without_the_asked_split_sit_out_a_run_of_all_scenes(tmp_path, ca
     with pytest.raises(SystemExit, match="scene 'capture' defines no 2-view split"):
         bench_scenes.main(["--config", str(tmp_path / "scenes.yaml"), "--scenes", "capture", "--only-baselines",
                            "--baselines", "tensorf", "--out", str(tmp_path / "out")])
+
+
+SHARED_LLFF = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "llff"
+
+
+@pytest.mark.skipif(not (SHARED_LLFF / "horns").exists(), reason="../shared/data is absent")
+def test_cameras_bench_compares_estimated_cameras_with_published_poses(tmp_path, capsys):
+    out = tmp_path / "cameras.json"
+    assert cli.main(["cameras", "--data-root", str(SHARED_LLFF.parent), "--scenes", "horns", "--views", "2",
+                     "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert len(rows) == 1 and rows[0]["train"] == [20, 42] and rows[0]["test"] == list(range(0, 62, 8))
+    # Measured 0.09 / 0.36 deg between the two views, test views 0.07 deg and 0.01 spreads (median) off.
+    assert rows[0]["pair_rotation_deg"] < 0.5 and rows[0]["pair_direction_deg"] < 1.5
+    assert rows[0]["test_rotation_deg_median"] < 0.5 and rows[0]["test_centre_median"] < 0.1
+    assert "| horns | 20 42 |" in capsys.readouterr().out

@@ -130,7 +130,8 @@ def in_true_frame(points, c2w, truth):
 
 def test_three_photos_refine_a_wrong_focal_length_and_register_a_test_photo():
     images = [render(c) for c in TRUE[:3]]
-    est = estimate_cameras(images, ["a", "b", "c"], FOCAL * 1.12, PoseEstimationOptions(), [render(TRUE[3])], ["test"])
+    refine = PoseEstimationOptions(refine_focal_length=True)
+    est = estimate_cameras(images, ["a", "b", "c"], FOCAL * 1.12, refine, [render(TRUE[3])], ["test"])
     assert abs(est.focal / FOCAL - 1.0) < 0.03
     for a, b in ((0, 1), (0, 2), (1, 2)):
         true_rotation, true_direction = relative(TRUE[a].numpy(), TRUE[b].numpy())
@@ -140,7 +141,8 @@ def test_three_photos_refine_a_wrong_focal_length_and_register_a_test_photo():
     rotation, direction = relative(est.camera_to_worlds[0].numpy(), est.test_camera_to_worlds[0].numpy())
     assert rotation_angle(true_rotation, rotation) < 0.3 and direction_error(true_direction, direction) < 1.5
     # A test photo never changes the training reconstruction.
-    alone = estimate_cameras(images, ["a", "b", "c"], FOCAL * 1.12, PoseEstimationOptions())
+    alone = estimate_cameras(images, ["a", "b", "c"], FOCAL * 1.12, refine)
+    assert estimate_cameras(images, ["a", "b", "c"], FOCAL * 1.12, PoseEstimationOptions()).focal == FOCAL * 1.12
     assert torch.equal(alone.camera_to_worlds, est.camera_to_worlds) and alone.focal == est.focal
     assert torch.equal(alone.points.points, est.points.points)
 
@@ -174,8 +176,20 @@ def test_fern_cameras_agree_with_llffs_published_poses(views):
         for b in range(a + 1, len(views)):
             true_rotation, true_direction = relative(truth[a], truth[b])
             rotation, direction = relative(c2w[a], c2w[b])
-            # Measured: 0.93 / 1.89 deg (6, 13), <= 0.83 / 1.21 deg (1, 10, 19).
+            # Measured: 0.93 / 1.89 deg (6, 13), <= 0.34 / 0.87 deg (1, 10, 19).
             assert rotation_angle(true_rotation, rotation) < 1.5 and direction_error(true_direction, direction) < 3.0
     true_focal = poses[0, 2, 4] * images[0].shape[1] / poses[0, 1, 4]
-    assert abs(est.focal / true_focal - 1.0) < (0.05 if len(views) == 2 else 0.12)
+    assert abs(est.focal / true_focal - 1.0) < 0.05  # the assumed 65 degrees (LLFF's phone: 64)
     assert est.points.num_points > 200
+
+
+def test_align_cameras_recovers_a_similarity_from_two_cameras():
+    from frugalnerf_ns.geometry.camera_conventions import align_cameras, apply_similarity
+
+    truth = np.stack([c.numpy() for c in TRUE])
+    angle = 0.7
+    rotation = np.array([[math.cos(angle), 0.0, math.sin(angle)], [0.0, 1.0, 0.0], [-math.sin(angle), 0.0, math.cos(angle)]])
+    moved = apply_similarity(truth, rotation.T, 0.25, np.array([1.0, -2.0, 0.5]))
+    r, s, t = align_cameras(moved[:2], truth[:2])  # two cameras determine it through their orientations
+    assert np.allclose(apply_similarity(moved, r, s, t), truth, atol=1e-9)
+    assert math.isclose(s, 4.0)

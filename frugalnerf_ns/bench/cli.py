@@ -18,6 +18,7 @@ SUBCOMMANDS = {
     "render": ("render", "seconds per spiral frame and per test view of a trained run, before and after full-scale-only"),
     "viewer": ("viewer", "seconds per viewer frame and moving preview of trained runs, per render mode"),
     "startup": ("startup", "start-up time against the number of training views: parsing, images, SIFT, matching, triangulation"),
+    "cameras": ("photo_cameras", "cameras estimated from LLFF photos alone against the published poses (photos without cameras)"),
     "model-size": ("model_size", "checkpoint size, parameters and first-step memory per preset at its final grid"),
     "step": ("step_time", "seconds per training step of a trained run, this source tree beside an earlier one"),
     "profile": ("profile_step", "where a training step's time goes (torch.profiler stages and operators)"),

@@ -12,8 +12,9 @@ of one scene rarely come out. Here the steps are the same, with the few-view cas
    then its matches triangulated (two photos end here);
 4. every other photo registered by absolute pose (P3P, LO-RANSAC) from its matches to the points, more
    points triangulated after each;
-5. bundle adjustment over everything: one shared pinhole camera (principal point at the centre), its focal
-   length refined when three or more photos constrain it (two views do not determine it).
+5. bundle adjustment over everything: one shared pinhole camera (principal point at the centre) at the focal
+   length EXIF says or the assumed field of view (refined on request with three or more photos: at the small
+   baselines of a few forward-facing photos the data hardly determine it).
 
 Test photos of a benchmark are registered afterwards with ``register_photos``: absolute pose against the
 training points, the training cameras, points and focal length fixed.
@@ -67,8 +68,11 @@ class PoseEstimationOptions:
     """Smallest angle (degrees) between two rays of a kept point."""
     field_of_view: float = DEFAULT_FIELD_OF_VIEW
     """Starting field of view across the long side, degrees (used as is with two photos)."""
-    refine_focal_length: bool = True
-    """Refine the shared focal length in bundle adjustment when three or more photos are registered."""
+    refine_focal_length: bool = False
+    """Refine the shared focal length in bundle adjustment when three or more photos are registered. Off by
+    default: on 3-4 forward-facing LLFF photos it moved the focal length by -18 % to +8 % and made the poses
+    worse than the assumed field of view did (``frugalnerf-bench cameras``, docs/captures.md); depth and focal
+    length are nearly interchangeable at small baselines."""
     seed: int = 0
     """Seed of the RANSAC draws (the same photos give the same cameras)."""
 

@@ -69,3 +69,27 @@ def decompose_projection(projection: np.ndarray) -> Tuple[np.ndarray, np.ndarray
     K = K / K[2, 2]
     c2w = np.concatenate([R.T, (center[:3] / center[3])], axis=1)
     return K, c2w
+
+
+def align_cameras(estimate: np.ndarray, reference: np.ndarray) -> Tuple[np.ndarray, float, np.ndarray]:
+    """The similarity (R, s, t) with x_ref = s R x_est + t that best puts the ``estimate`` cameras (n x 3 x 4,
+    n >= 2) on the ``reference`` ones: R from their orientations (the rotation nearest the mean of
+    R_ref_i R_est_i^T, so two cameras suffice, unlike a fit of centres alone), s from the spread of the
+    centres about their mean, t from the means."""
+    mean = sum(ref[:3, :3] @ est[:3, :3].T for est, ref in zip(estimate, reference))
+    u, _, vt = np.linalg.svd(mean)
+    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    est_centres, ref_centres = estimate[:, :3, 3], reference[:, :3, 3]
+    est_offsets = est_centres - est_centres.mean(0)
+    ref_offsets = ref_centres - ref_centres.mean(0)
+    scale = float(np.sqrt((ref_offsets**2).sum() / max((est_offsets**2).sum(), 1e-300)))
+    translation = ref_centres.mean(0) - scale * rotation @ est_centres.mean(0)
+    return rotation, scale, translation
+
+
+def apply_similarity(c2w: np.ndarray, rotation: np.ndarray, scale: float, translation: np.ndarray) -> np.ndarray:
+    """Camera-to-worlds (n x 3 x 4) moved by x -> s R x + t (orientations turned, centres moved)."""
+    out = c2w.copy()
+    out[:, :3, :3] = rotation @ c2w[:, :3, :3]
+    out[:, :3, 3] = scale * c2w[:, :3, 3] @ rotation.T + translation
+    return out
