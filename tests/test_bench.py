@@ -98,11 +98,14 @@ SHARED_LLFF = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "
 @pytest.mark.skipif(not (SHARED_LLFF / "horns").exists(), reason="../shared/data is absent")
 def test_cameras_bench_compares_estimated_cameras_with_published_poses(tmp_path, capsys):
     out = tmp_path / "cameras.json"
-    assert cli.main(["cameras", "--data-root", str(SHARED_LLFF.parent), "--scenes", "horns", "--views", "2",
-                     "--out", str(out)]) == 0
-    rows = json.loads(out.read_text())
-    assert len(rows) == 1 and rows[0]["train"] == [20, 42] and rows[0]["test"] == list(range(0, 62, 8))
-    # Measured 0.09 / 0.36 deg between the two views, test views 0.07 deg and 0.01 spreads (median) off.
-    assert rows[0]["pair_rotation_deg"] < 0.5 and rows[0]["pair_direction_deg"] < 1.5
-    assert rows[0]["test_rotation_deg_median"] < 0.5 and rows[0]["test_centre_median"] < 0.1
-    assert "| horns | 20 42 |" in capsys.readouterr().out
+    startup = sorted((SHARED_LLFF / "horns" / "images_8").iterdir())[20:43:22]
+    assert cli.main(["cameras", "--data-root", str(SHARED_LLFF.parent), "--cases", "horns-2v", "--out", str(out),
+                     "--startup-photos", *map(str, startup)]) == 0
+    report = json.loads(out.read_text())
+    (row,) = report["cases"]
+    assert len(row["train"]) == 2 and row["test_registered"] == row["test_count"] == 8
+    # Measured 0.09 / 0.36 deg between the two views, test views 0.07 deg and 1 % of the spread (median) off.
+    assert row["pair_rotation_deg"] < 0.5 and row["pair_direction_deg"] < 1.5
+    assert row["test_rotation_deg_median"] < 0.5 and row["test_centre_median"] < 0.1
+    assert report["startup"]["photos"] == 2 and report["startup"]["cached_s"] < report["startup"]["first_s"]
+    assert "| horns-2v | DJI_" in capsys.readouterr().out

@@ -93,6 +93,8 @@ class PhotoCameras(NamedTuple):
     """Points of the verified matches, with their observations (view = index among the photos)."""
     test_camera_to_worlds: Float[Tensor, "tests 3 4"]
     """Test photos registered against the points with everything above fixed (empty without test photos)."""
+    reprojection_error: float = math.nan
+    """Mean distance (pixels) between the points' projections and their SIFT keypoints."""
 
     @property
     def intrinsics(self) -> Float[Tensor, "views 4"]:
@@ -321,14 +323,15 @@ def bundle_adjust(
 def observations(
     tracks, keypoints, poses: Dict[int, np.ndarray], points: np.ndarray, valid: np.ndarray, focal: float,
     width: int, height: int, max_error: float,
-) -> Tuple[SparseDepth, np.ndarray]:
+) -> Tuple[SparseDepth, np.ndarray, float]:
     """The kept points as ``SparseDepth`` (observations in registered views; a point reprojecting further than
-    ``max_error`` from any observation, or behind a camera, is dropped) and each kept point's track index."""
+    ``max_error`` from any observation, or behind a camera, is dropped), each kept point's track index and the
+    kept observations' mean reprojection error (pixels)."""
     views = sorted(poses)
     c2w = torch.from_numpy(np.stack([poses[v] for v in views]))
     local = {v: k for k, v in enumerate(views)}
     intrinsics = torch.tensor([[focal, focal, width / 2.0, height / 2.0]], dtype=torch.float64)
-    kept, obs_view, obs_point, obs_pixels, obs_depth = [], [], [], [], []
+    kept, obs_view, obs_point, obs_pixels, obs_depth, errors = [], [], [], [], [], []
     for index, track in enumerate(tracks):
         if not valid[index]:
             continue
@@ -339,8 +342,10 @@ def observations(
         cams = c2w[[local[v] for v, _ in seen]]
         proj = project_to_camera(xyz, cams, intrinsics.expand(len(seen), 4))
         observed = torch.stack([keypoints[v][f] for v, f in seen]).double()
-        if not bool(proj.in_front.all()) or float((proj.pixels - observed).norm(dim=-1).max()) > max_error:
+        error = (proj.pixels - observed).norm(dim=-1)
+        if not bool(proj.in_front.all()) or float(error.max()) > max_error:
             continue
+        errors.append(error)
         point = len(kept)
         kept.append(index)
         obs_view += [v for v, _ in seen]
@@ -350,22 +355,23 @@ def observations(
     if not kept:
         empty = torch.zeros(0, dtype=torch.float64)
         none = torch.zeros(0, dtype=torch.long)
-        return SparseDepth(empty.reshape(0, 3), none, none, empty.reshape(0, 2), empty), np.zeros(0, dtype=np.int64)
+        return SparseDepth(empty.reshape(0, 3), none, none, empty.reshape(0, 2), empty), np.zeros(0, dtype=np.int64), math.nan
     sparse = SparseDepth(
         torch.from_numpy(points[kept]), torch.tensor(obs_view), torch.tensor(obs_point), torch.cat(obs_pixels),
         torch.cat(obs_depth),
     )
-    return sparse, np.asarray(kept)
+    return sparse, np.asarray(kept), float(torch.cat(errors).mean())
 
 
 def register_test_photos(
     images: Sequence[np.ndarray], names: Sequence[str], keypoints: Sequence[Tensor], descriptors: Sequence[Tensor],
     point_of_feature: Dict[Tuple[int, int], int], points: np.ndarray, focal: float, width: int, height: int,
-    options: PoseEstimationOptions,
+    options: PoseEstimationOptions, unregistered_as_nan: bool = False,
 ) -> List[np.ndarray]:
     """OpenGL camera-to-world of each test photo, by absolute pose from its matches to the training photos'
     points (``point_of_feature``: (training view, feature) -> row of ``points``). Nothing of the training
-    reconstruction changes, so a benchmark's test photos never move the training cameras or points."""
+    reconstruction changes, so a benchmark's test photos never move the training cameras or points. A photo
+    that cannot be registered is an error, or NaN with ``unregistered_as_nan`` (measurements)."""
     pycolmap = _pycolmap()
     test_keypoints, test_descriptors = extract_sift(images, options.max_features, progress=False)
     camera = _camera(width, height, focal)
@@ -391,6 +397,9 @@ def register_test_photos(
             result = pycolmap.estimate_and_refine_absolute_pose(points2d, points3d, camera, estimation, refinement)
         if result is None or int(result["num_inliers"]) < minimum:
             found = len(pairs) if result is None else int(result["num_inliers"])
+            if unregistered_as_nan:
+                poses.append(np.full((3, 4), np.nan))
+                continue
             raise DataError(
                 f"test photo {name} could not be registered into the training photos' reconstruction: {found} "
                 f"consistent matches to their points (at least {minimum} needed)"
@@ -402,7 +411,7 @@ def register_test_photos(
 
 def estimate_cameras(
     images: Sequence[np.ndarray], names: Sequence[str], focal: Optional[float], options: PoseEstimationOptions,
-    test_images: Sequence[np.ndarray] = (), test_names: Sequence[str] = (),
+    test_images: Sequence[np.ndarray] = (), test_names: Sequence[str] = (), unregistered_as_nan: bool = False,
 ) -> PhotoCameras:
     """Cameras of 2 or more photos of one size (uint8 RGB), see the module's steps; then the test photos
     registered into that reconstruction (``register_test_photos``). ``focal``: the focal length in pixels when
@@ -458,12 +467,12 @@ def estimate_cameras(
                                              options.refine_focal_length and len(poses) >= 3)
     # A last pass without the outliers the first adjustment carried.
     for _ in range(2):
-        sparse, kept = observations(tracks, keypoints, poses, points, valid, focal, width, height, options.max_reprojection_error)
+        sparse, kept, _ = observations(tracks, keypoints, poses, points, valid, focal, width, height, options.max_reprojection_error)
         valid = np.zeros_like(valid)
         valid[kept] = True
         poses, points, focal = bundle_adjust(tracks, keypoints, poses, points, valid, focal, width, height,
                                              options.refine_focal_length and len(poses) >= 3)
-    sparse, kept = observations(tracks, keypoints, poses, points, valid, focal, width, height, options.max_reprojection_error)
+    sparse, kept, error = observations(tracks, keypoints, poses, points, valid, focal, width, height, options.max_reprojection_error)
     c2w = torch.from_numpy(np.stack([poses[v] for v in range(len(images))]))
     tests = torch.zeros(0, 3, 4, dtype=torch.float64)
     if len(test_images):
@@ -472,6 +481,6 @@ def estimate_cameras(
         point_of_feature = {(v, f): row for row, index in enumerate(kept) for v, f in tracks[index]}
         tests = torch.from_numpy(np.stack(register_test_photos(
             test_images, test_names, keypoints, descriptors, point_of_feature, sparse.points.numpy(), focal, width,
-            height, options,
+            height, options, unregistered_as_nan,
         )))
-    return PhotoCameras(c2w, focal, width, height, sparse, tests)
+    return PhotoCameras(c2w, focal, width, height, sparse, tests, error)
