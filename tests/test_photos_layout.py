@@ -116,6 +116,7 @@ def test_blank_images_stop_ns_train_with_one_line(tmp_path):
         Image.fromarray(np.full((48, 64, 3), 40 * i, dtype=np.uint8)).save(folder / f"img_{i}.png")
     said = ns_train_main(preset_config("frugalnerf-tiny", tmp_path / "scene", tmp_path / "out"))
     assert said.startswith("frugalnerf: error:") and "photo img_0.png has 0 SIFT features" in said
+    assert not list((tmp_path / "scene").rglob("photo_cameras_*"))  # nothing half-estimated is cached
 
 
 def test_training_on_photos_uses_the_estimated_points(tmp_path):
@@ -130,3 +131,15 @@ def test_training_on_photos_uses_the_estimated_points(tmp_path):
     metrics, _ = trainer.pipeline.get_eval_image_metrics_and_images(step=30)
     assert math.isfinite(metrics["psnr"])
     assert sorted((tmp_path / "out").rglob("step-*.ckpt"))
+
+
+def test_focal_length_options_reach_the_estimate_through_frugal_auto(tmp_path):
+    from frugalnerf_ns.data.photo_poses import PoseEstimationOptions, focal_from_field_of_view
+
+    data = write_photos(tmp_path / "scene", TRUE[:3])
+    assumed, _ = outputs(data)
+    assert float(assumed.cameras.fx[0]) == pytest.approx(focal_from_field_of_view(320, 240, 65.0))
+    refined, _ = outputs(data, poses=PoseEstimationOptions(refine_focal_length=True))
+    assert float(refined.cameras.fx[0]) == pytest.approx(280.0, rel=0.03)  # the photos' true focal length
+    wider, _ = outputs(data, poses=PoseEstimationOptions(field_of_view=80.0))
+    assert float(wider.cameras.fx[0]) == pytest.approx(focal_from_field_of_view(320, 240, 80.0))

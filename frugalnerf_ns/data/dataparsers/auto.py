@@ -19,6 +19,7 @@ from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
     FewShotNerfstudioDataParserConfig,
 )
 from frugalnerf_ns.data.dataparsers.photos import PhotosDataParserConfig, is_photo_folder
+from frugalnerf_ns.data.photo_poses import PoseEstimationOptions
 from frugalnerf_ns.data.dataparsers.realestate import REALESTATE_FILES, RealEstateDataParserConfig
 
 
@@ -56,6 +57,9 @@ class AutoDataParserConfig(FewShotDataParserConfig):
     wide); nerfstudio/COLMAP pass it on (default: auto)."""
     center_method: Literal["poses", "focus", "none"] = "poses"
     """nerfstudio/COLMAP data only: how nerfstudio centres the poses (focus: cameras looking at an object)."""
+    poses: PoseEstimationOptions = field(default_factory=PoseEstimationOptions)
+    """Photos without cameras only: how their cameras are estimated (field of view without EXIF, focal length
+    refinement, features, thresholds)."""
 
 
 def detect_layout(data: Path) -> Tuple[str, Type[DataParserConfig]]:
