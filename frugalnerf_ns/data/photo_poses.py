@@ -67,7 +67,8 @@ class PoseEstimationOptions:
     min_triangulation_angle: float = 1.0
     """Smallest angle (degrees) between two rays of a kept point."""
     field_of_view: float = DEFAULT_FIELD_OF_VIEW
-    """Starting field of view across the long side, degrees (used as is with two photos)."""
+    """Field of view across the long side, degrees, where the photos' EXIF gives no focal length (kept as is
+    unless refine-focal-length)."""
     refine_focal_length: bool = False
     """Refine the shared focal length in bundle adjustment when three or more photos are registered. Off by
     default: on 3-4 forward-facing LLFF photos it moved the focal length by -18 % to +8 % and made the poses
