@@ -13,8 +13,8 @@ of one scene rarely come out. Here the steps are the same, with the few-view cas
 4. every other photo registered by absolute pose (P3P, LO-RANSAC) from its matches to the points, more
    points triangulated after each;
 5. bundle adjustment over everything: one shared pinhole camera (principal point at the centre) at the focal
-   length EXIF says or the assumed field of view (refined on request with three or more photos: at the small
-   baselines of a few forward-facing photos the data hardly determine it).
+   length EXIF says, else from an assumed field of view refined with three or more photos (two do not
+   determine it).
 
 Test photos of a benchmark are registered afterwards with ``register_photos``: absolute pose against the
 training points, the training cameras, points and focal length fixed.
@@ -69,16 +69,19 @@ class PoseEstimationOptions:
     field_of_view: float = DEFAULT_FIELD_OF_VIEW
     """Field of view across the long side, degrees, where the photos' EXIF gives no focal length (kept as is
     unless refine-focal-length)."""
-    refine_focal_length: bool = False
-    """Refine the shared focal length in bundle adjustment when three or more photos are registered. Off by
-    default: on 3-4 forward-facing LLFF photos it moved the focal length by -18 % to +8 % and made the poses
-    worse than the assumed field of view did (``frugalnerf-bench cameras``, docs/captures.md); depth and focal
-    length are nearly interchangeable at small baselines."""
+    refine_focal_length: Optional[bool] = None
+    """Refine the shared focal length in bundle adjustment (with three or more photos; two do not determine
+    it). Default: refined where EXIF gives no focal length, kept where it does (``focal_is_refined``)."""
     seed: int = 0
     """Seed of the RANSAC draws (the same photos give the same cameras)."""
 
-    def key(self) -> Dict[str, float]:
-        return {k: float(v) for k, v in self.__dict__.items()}
+    def key(self) -> Dict[str, Optional[float]]:
+        return {k: None if v is None else float(v) for k, v in self.__dict__.items()}
+
+    def focal_is_refined(self, num_photos: int, focal_from_exif: bool) -> bool:
+        if num_photos < 3:
+            return False
+        return (not focal_from_exif) if self.refine_focal_length is None else self.refine_focal_length
 
 
 class PhotoCameras(NamedTuple):
@@ -132,10 +135,13 @@ def _pycolmap():
     return pycolmap
 
 
-def _camera(width: int, height: int, focal: float):
+def _camera(width: int, height: int, focal: float, radial: bool = False):
+    """One shared pinhole camera, principal point at the centre; ``radial``: with one radial distortion term
+    (starting at 0) for the bundle adjustment that refines the focal length."""
     pycolmap = _pycolmap()
-    camera = pycolmap.Camera.create_from_model_name(1, "SIMPLE_PINHOLE", float(focal), int(width), int(height))
-    camera.params = np.array([focal, width / 2.0, height / 2.0])
+    model = "SIMPLE_RADIAL" if radial else "SIMPLE_PINHOLE"
+    camera = pycolmap.Camera.create_from_model_name(1, model, float(focal), int(width), int(height))
+    camera.params = np.array([focal, width / 2.0, height / 2.0] + ([0.0] if radial else []))
     return camera
 
 
@@ -273,13 +279,16 @@ def register_view(
 
 def bundle_adjust(
     tracks, keypoints, poses: Dict[int, np.ndarray], points: np.ndarray, valid: np.ndarray, focal: float,
-    width: int, height: int, refine_focal: bool, fixed: Sequence[int] = (),
+    width: int, height: int, refine_focal: bool,
 ) -> Tuple[Dict[int, np.ndarray], np.ndarray, float]:
-    """Poses, points and focal length refined together (pycolmap's bundle adjustment, Cauchy loss); views in
-    ``fixed`` keep their poses (test photos registered against fixed training cameras)."""
+    """Poses, points and (``refine_focal``) the focal length refined together (pycolmap's bundle adjustment,
+    Cauchy loss; the gauge fixed by two cameras). The focal length is refined together with one radial
+    distortion term: phone lenses have some, and without it the focal length absorbs it (on LLFF photos,
+    -18 % to +8 % off; with it, -14 % to +2 %, docs/captures.md). Only the focal length is kept: the renderer's
+    cameras are pinholes, and the adjustments after this one fit the poses and points to them."""
     pycolmap = _pycolmap()
     reconstruction = pycolmap.Reconstruction()
-    reconstruction.add_camera_with_trivial_rig(_camera(width, height, focal))
+    reconstruction.add_camera_with_trivial_rig(_camera(width, height, focal, radial=refine_focal))
     image_id = {}
     for view in sorted(poses):
         image = pycolmap.Image(
@@ -299,14 +308,11 @@ def bundle_adjust(
     config = pycolmap.BundleAdjustmentConfig()
     for view in sorted(poses):
         config.add_image(image_id[view])
-    for view in fixed:
-        config.set_constant_rig_from_world_pose(image_id[view])
-    if not fixed:
-        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_focal_length = refine_focal
     ba.refine_principal_point = False
-    ba.refine_extra_params = False
+    ba.refine_extra_params = refine_focal
     ba.print_summary = False
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     bundle_adjuster = pycolmap.create_default_bundle_adjuster(ba, config, reconstruction)
@@ -424,6 +430,7 @@ def estimate_cameras(
     if len(sizes) != 1:
         raise DataError(f"the photos have different sizes ({sorted(sizes)}); one camera is estimated for all of them")
     height, width = images[0].shape[:2]
+    refine = options.focal_is_refined(len(images), bool(focal))
     focal = float(focal) if focal else focal_from_field_of_view(width, height, options.field_of_view)
     keypoints, descriptors = extract_sift(images, options.max_features, progress=True)
     for name, kps in zip(names, keypoints):
@@ -465,14 +472,15 @@ def estimate_cameras(
         points, valid = triangulate_tracks_in(tracks, keypoints, poses, focal, width, height,
                                               2.0 * options.max_reprojection_error, options.min_triangulation_angle)
         poses, points, focal = bundle_adjust(tracks, keypoints, poses, points, valid, focal, width, height,
-                                             options.refine_focal_length and len(poses) >= 3)
-    # A last pass without the outliers the first adjustment carried.
-    for _ in range(2):
+                                             refine and len(poses) >= 3)
+    # Passes without the outliers the first adjustments carried; the last one as pinholes at the focal length
+    # found (what the renderer's cameras are).
+    for final in (False, False, True):
         sparse, kept, _ = observations(tracks, keypoints, poses, points, valid, focal, width, height, options.max_reprojection_error)
         valid = np.zeros_like(valid)
         valid[kept] = True
         poses, points, focal = bundle_adjust(tracks, keypoints, poses, points, valid, focal, width, height,
-                                             options.refine_focal_length and len(poses) >= 3)
+                                             refine and len(poses) >= 3 and not final)
     sparse, kept, error = observations(tracks, keypoints, poses, points, valid, focal, width, height, options.max_reprojection_error)
     c2w = torch.from_numpy(np.stack([poses[v] for v in range(len(images))]))
     tests = torch.zeros(0, 3, 4, dtype=torch.float64)

@@ -176,7 +176,7 @@ class Photos(DataParser):
         fov = math.degrees(2 * math.atan(0.5 * max(cameras.width, cameras.height) / cameras.focal))
         say(
             f"frugalnerf: cameras estimated: focal length {cameras.focal:.1f} px ({fov:.1f} deg across the long side"
-            f"{', from EXIF' if focal_guess else ''}{', refined' if num_train >= 3 and self.config.poses.refine_focal_length else ', assumed'}), "
+            f"{', from EXIF' if focal_guess else ''}{', refined' if self.config.poses.focal_is_refined(num_train, bool(focal_guess)) else (', assumed' if not focal_guess else '')}), "
             f"{cameras.points.num_points} points"
         )
         try:
