@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image, ImageFilter
+from PIL import Image
 
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.photo_poses import (
@@ -22,6 +22,7 @@ from frugalnerf_ns.data.photo_poses import (
 from frugalnerf_ns.data.procedural_scene import look_at
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
 from frugalnerf_ns.geometry.reprojection import project_to_camera
+from tests.test_sparse_points import texture
 
 FERN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "llff" / "fern"
 WIDTH, HEIGHT, FOCAL = 320, 240, 280.0
@@ -30,17 +31,6 @@ WIDTH, HEIGHT, FOCAL = 320, 240, 280.0
 def camera(eye, target=(0.0, 0.0, -2.0)):
     return look_at(torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64),
                    torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))[:3].double()
-
-
-def texture(size=512, seed=0):
-    """Multi-scale random blobs: plenty of SIFT corners."""
-    rng = np.random.default_rng(seed)
-    tex = np.zeros((size, size), np.float32)
-    for radius in (2, 4, 8):
-        noise = Image.fromarray((rng.random((size, size)) * 255).astype(np.uint8)).filter(ImageFilter.GaussianBlur(radius))
-        tex += np.asarray(noise, np.float32)
-    tex -= tex.min()
-    return tex / tex.max()
 
 
 def render(c2w, seed=0, focal=FOCAL, radial=0.0):

@@ -249,7 +249,6 @@ def register_view(
 ) -> Tuple[Optional[np.ndarray], int]:
     """(OpenGL camera-to-world of ``view`` from its features' matches to triangulated points by absolute pose,
     or None; the number of 2D-3D matches it had, or of inliers when it succeeded)."""
-    pycolmap = _pycolmap()
     points2d, points3d = [], []
     for index, track in enumerate(tracks):
         if not valid[index]:
@@ -260,6 +259,16 @@ def register_view(
             points3d.append(points[index])
     if len(points2d) < 6:
         return None, len(points2d)
+    c2w, inliers = absolute_pose(np.asarray(points2d), np.asarray(points3d), width, height, focal, options)
+    return c2w, (len(points2d) if c2w is None else inliers)
+
+
+def absolute_pose(
+    points2d: np.ndarray, points3d: np.ndarray, width: int, height: int, focal: float, options: PoseEstimationOptions
+) -> Tuple[Optional[np.ndarray], int]:
+    """(OpenGL camera-to-world, inliers) of a camera seeing ``points3d`` at ``points2d`` (P3P in LO-RANSAC,
+    then refined; the focal length fixed), or (None, 0)."""
+    pycolmap = _pycolmap()
     estimation = pycolmap.AbsolutePoseEstimationOptions()
     estimation.ransac.max_error = 2.0 * options.max_reprojection_error
     estimation.ransac.random_seed = options.seed
@@ -267,14 +276,12 @@ def register_view(
     refinement.refine_focal_length = False
     refinement.refine_extra_params = False
     result = pycolmap.estimate_and_refine_absolute_pose(
-        np.asarray(points2d, dtype=np.float64), np.asarray(points3d, dtype=np.float64), _camera(width, height, focal),
-        estimation, refinement,
+        points2d.astype(np.float64), points3d.astype(np.float64), _camera(width, height, focal), estimation, refinement
     )
     if result is None:
-        return None, len(points2d)
+        return None, 0
     pose = result["cam_from_world"]
-    c2w = world_to_camera_to_opengl(np.asarray(pose.rotation.matrix()), np.asarray(pose.translation))
-    return c2w, int(result["num_inliers"])
+    return world_to_camera_to_opengl(np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)), int(result["num_inliers"])
 
 
 def bundle_adjust(
@@ -379,15 +386,7 @@ def register_test_photos(
     points (``point_of_feature``: (training view, feature) -> row of ``points``). Nothing of the training
     reconstruction changes, so a benchmark's test photos never move the training cameras or points. A photo
     that cannot be registered is an error, or NaN with ``unregistered_as_nan`` (measurements)."""
-    pycolmap = _pycolmap()
     test_keypoints, test_descriptors = extract_sift(images, options.max_features, progress=False)
-    camera = _camera(width, height, focal)
-    estimation = pycolmap.AbsolutePoseEstimationOptions()
-    estimation.ransac.max_error = 2.0 * options.max_reprojection_error
-    estimation.ransac.random_seed = options.seed
-    refinement = pycolmap.AbsolutePoseRefinementOptions()
-    refinement.refine_focal_length = False
-    refinement.refine_extra_params = False
     minimum = options.min_verified_matches // 2
     poses = []
     for name, kps, desc in zip(names, test_keypoints, test_descriptors):
@@ -397,13 +396,11 @@ def register_test_photos(
                 point = point_of_feature.get((view, b))
                 if point is not None and point not in pairs:
                     pairs[point] = a
-        result = None
+        c2w, found = None, len(pairs)
         if len(pairs) >= max(minimum, 6):
-            points3d = points[list(pairs)]
-            points2d = kps.numpy()[list(pairs.values())]
-            result = pycolmap.estimate_and_refine_absolute_pose(points2d, points3d, camera, estimation, refinement)
-        if result is None or int(result["num_inliers"]) < minimum:
-            found = len(pairs) if result is None else int(result["num_inliers"])
+            c2w, inliers = absolute_pose(kps.numpy()[list(pairs.values())], points[list(pairs)], width, height, focal, options)
+            found = len(pairs) if c2w is None else inliers
+        if c2w is None or found < minimum:
             if unregistered_as_nan:
                 poses.append(np.full((3, 4), np.nan))
                 continue
@@ -411,8 +408,7 @@ def register_test_photos(
                 f"test photo {name} could not be registered into the training photos' reconstruction: {found} "
                 f"consistent matches to their points (at least {minimum} needed)"
             )
-        pose = result["cam_from_world"]
-        poses.append(world_to_camera_to_opengl(np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)))
+        poses.append(c2w)
     return poses
 
 
