@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Tuple, Type
@@ -170,14 +171,17 @@ class Photos(DataParser):
         if why != "missing":
             say(f"[bold yellow]frugalnerf: camera cache {path} is {why}: estimating again.")
         say(f"frugalnerf: estimating the cameras of {num_train} photos with pycolmap (once; cached in {path.parent})")
+        start = time.perf_counter()
         cameras = estimate_cameras(
             images[:num_train], names[:num_train], focal_guess, self.config.poses, images[num_train:], names[num_train:]
         )
         fov = math.degrees(2 * math.atan(0.5 * max(cameras.width, cameras.height) / cameras.focal))
+        refined = self.config.poses.focal_is_refined(num_train, bool(focal_guess))
+        how = ("from EXIF" if focal_guess else "assumed") + (", refined" if refined else "")
         say(
-            f"frugalnerf: cameras estimated: focal length {cameras.focal:.1f} px ({fov:.1f} deg across the long side"
-            f"{', from EXIF' if focal_guess else ''}{', refined' if self.config.poses.focal_is_refined(num_train, bool(focal_guess)) else (', assumed' if not focal_guess else '')}), "
-            f"{cameras.points.num_points} points"
+            f"frugalnerf: cameras estimated in {time.perf_counter() - start:.1f} s: focal length {cameras.focal:.1f} px "
+            f"({fov:.1f} deg across the long side, {how}), {cameras.points.num_points} points, mean reprojection "
+            f"error {cameras.reprojection_error:.2f} px"
         )
         try:
             save_keyed_arrays(path, key, **cameras_to_arrays(cameras))
