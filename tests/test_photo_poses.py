@@ -19,47 +19,11 @@ from frugalnerf_ns.data.photo_poses import (
     opengl_to_world_to_camera,
     world_to_camera_to_opengl,
 )
-from frugalnerf_ns.data.procedural_scene import look_at
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
 from frugalnerf_ns.geometry.reprojection import project_to_camera
-from tests.test_sparse_points import texture
+from tests.photo_scene import FOCAL, HEIGHT, TRUE, WIDTH, camera, render
 
 FERN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "llff" / "fern"
-WIDTH, HEIGHT, FOCAL = 320, 240, 280.0
-
-
-def camera(eye, target=(0.0, 0.0, -2.0)):
-    return look_at(torch.tensor(eye, dtype=torch.float64), torch.tensor(target, dtype=torch.float64),
-                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))[:3].double()
-
-
-def render(c2w, seed=0, focal=FOCAL, radial=0.0):
-    """A textured wall z = -3 + 0.2 y behind a textured card z = -1.6 - 0.15 x (x in [-0.7, 0.5], y in
-    [-0.5, 0.6]): two depths, so the views are not related by one homography. ``radial``: COLMAP's
-    SIMPLE_RADIAL k (a pixel at normalised distance r shows the ray at r / (1 + k r_u^2))."""
-    v, u = torch.meshgrid(torch.arange(HEIGHT, dtype=torch.float64) + 0.5, torch.arange(WIDTH, dtype=torch.float64) + 0.5,
-                          indexing="ij")
-    x, y = (u - WIDTH / 2) / focal, (v - HEIGHT / 2) / focal
-    xu, yu = x.clone(), y.clone()
-    for _ in range(20):  # undistort: x = xu (1 + k (xu^2 + yu^2))
-        factor = 1.0 + radial * (xu**2 + yu**2)
-        xu, yu = x / factor, y / factor
-    local = torch.stack([xu, -yu, -torch.ones_like(u)], -1)
-    d = local @ c2w[:3, :3].T
-    o = c2w[:3, 3]
-    t_wall = (-3.0 - o[2] + 0.2 * o[1]) / (d[..., 2] - 0.2 * d[..., 1])
-    t_card = (-1.6 - o[2] - 0.15 * o[0]) / (d[..., 2] + 0.15 * d[..., 0])
-    card = o + d * t_card[..., None]
-    on_card = (card[..., 0] > -0.7) & (card[..., 0] < 0.5) & (card[..., 1] > -0.5) & (card[..., 1] < 0.6) & (t_card > 0)
-    hit = torch.where(on_card[..., None], card, o + d * t_wall[..., None])
-    wall, front = texture(seed=seed), texture(seed=seed + 100)
-    size = wall.shape[0]
-    tx = ((hit[..., 0] + 3) / 6 * (size - 1)).clamp(0, size - 1).round().long().numpy()
-    ty = ((hit[..., 1] + 3) / 6 * (size - 1)).clamp(0, size - 1).round().long().numpy()
-    grey = np.where(on_card.numpy(), 0.3 + 0.7 * front[ty, tx], 0.7 * wall[ty, tx])
-    return np.repeat((grey * 255).astype(np.uint8)[..., None], 3, axis=-1)
-
-
 def rotation_angle(a, b):
     """Degrees of the rotation between two 3x3 rotations."""
     cos = (np.trace(a.T @ b) - 1.0) / 2.0
@@ -77,7 +41,6 @@ def direction_error(a, b):
     return math.degrees(math.acos(np.clip(float(a @ b), -1.0, 1.0)))
 
 
-TRUE = [camera((-0.3, 0.05, 0.0)), camera((0.25, -0.05, 0.05)), camera((0.0, 0.25, -0.1)), camera((0.1, -0.2, 0.1))]
 
 
 def test_conventions_round_trip_and_agree_with_project_to_camera():

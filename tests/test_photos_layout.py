@@ -15,7 +15,7 @@ from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_lay
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.photo_poses import focal_from_35mm
 from frugalnerf_ns.geometry.reprojection import project_to_camera
-from tests.test_photo_poses import TRUE, render
+from tests.photo_scene import TRUE, render
 from tests.training_helpers import ns_train_main, preset_config, train
 
 EXIF_ORIENTATION = 0x0112

@@ -6,13 +6,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image, ImageFilter
+from PIL import Image
 
 from frugalnerf_ns.cache import cache_file_name
 from frugalnerf_ns.model.losses import inverse_depth_loss
 from frugalnerf_ns.data.procedural_scene import look_at
 from frugalnerf_ns.progress import Progress
 from frugalnerf_ns.geometry.reprojection import project_to_camera
+from tests.photo_scene import texture
 from frugalnerf_ns.data.sparse_points import (
     SparseDepth,
     TriangulationOptions,
@@ -41,17 +42,6 @@ def camera(eye, target=(0.0, 0.0, 0.0)):
 
 def intrinsics(n):
     return torch.tensor([[FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2]], dtype=torch.float64).expand(n, 4)
-
-
-def texture(size=512, seed=0):
-    """Multi-scale random blobs about one texel per pixel: plenty of SIFT corners."""
-    rng = np.random.default_rng(seed)
-    tex = np.zeros((size, size), np.float32)
-    for radius in (2, 4, 8):
-        noise = Image.fromarray((rng.random((size, size)) * 255).astype(np.uint8)).filter(ImageFilter.GaussianBlur(radius))
-        tex += np.asarray(noise, np.float32)
-    tex -= tex.min()
-    return tex / tex.max()
 
 
 PLANE_Z = -1.0  # the textured plane z = PLANE_Z - 0.2 x (tilted), textured over x, y in [-2, 2]

@@ -52,9 +52,10 @@ DEFAULT_FIELD_OF_VIEW = 65.0
 equivalent is 69 degrees; LLFF's phone 64)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class PoseEstimationOptions:
-    """How the cameras of a few photos are estimated."""
+    """How the cameras of a few photos are estimated. Frozen, so one instance can be a class-level default: a
+    run's config.yml saved before a config had these options loads without them and reads the default."""
 
     max_features: int = 8192
     """SIFT features per photo (the largest-scale ones are kept)."""

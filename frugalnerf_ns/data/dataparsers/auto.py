@@ -57,7 +57,7 @@ class AutoDataParserConfig(FewShotDataParserConfig):
     wide); nerfstudio/COLMAP pass it on (default: auto)."""
     center_method: Literal["poses", "focus", "none"] = "poses"
     """nerfstudio/COLMAP data only: how nerfstudio centres the poses (focus: cameras looking at an object)."""
-    poses: PoseEstimationOptions = field(default_factory=PoseEstimationOptions)
+    poses: PoseEstimationOptions = PoseEstimationOptions()
     """Photos without cameras only: how their cameras are estimated (field of view without EXIF, focal length
     refinement, features, thresholds)."""
 
@@ -81,7 +81,8 @@ def layout_config(config: AutoDataParserConfig) -> Tuple[str, DataParserConfig]:
     names = {f.name for f in fields(target)}
     for f in fields(config):
         if f.name in names and f.name != "_target":
-            value = getattr(config, f.name)
+            # A run's config.yml saved before a field existed loads without it: the target's default stays.
+            value = getattr(config, f.name, None)
             if value is not None:
                 setattr(target, f.name, value)
     if isinstance(target, FewShotColmapDataParserConfig):

@@ -82,7 +82,7 @@ class PhotosDataParserConfig(FewShotDataParserConfig):
     away from their mean direction."""
     bd_factor: float = 0.75
     """Scale the scene so the nearest point lands at 1 / bd_factor from the photos (NeRF's LLFF loader)."""
-    poses: PoseEstimationOptions = field(default_factory=PoseEstimationOptions)
+    poses: PoseEstimationOptions = PoseEstimationOptions()
     """How the cameras are estimated."""
 
 
