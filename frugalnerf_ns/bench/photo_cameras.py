@@ -30,6 +30,7 @@ import numpy as np
 from PIL import Image
 
 from frugalnerf_ns.bench.report import markdown_table, write_report
+from frugalnerf_ns.bench.startup import load_training_images
 from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.photo_poses import PoseEstimationOptions, estimate_cameras
@@ -82,21 +83,13 @@ CASES = {
 }
 
 
-def load_rgb(path: Path) -> np.ndarray:
-    """uint8 RGB; alpha composited on white (Blender frames)."""
-    with Image.open(path) as img:
-        rgba = np.asarray(img.convert("RGBA"), dtype=np.float64) / 255.0
-    rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
-    return np.round(rgb * 255.0).astype(np.uint8)
-
-
 def measure(data: Path, parser_options: Dict, options: PoseEstimationOptions) -> Dict:
     """Cameras estimated from the pixels of a posed scene's training views (the files and size its parser
     trains on), test views registered, against the parser's cameras."""
     parser = AutoDataParserConfig(data=data, **parser_options).setup()
     train, test = parser.get_dataparser_outputs("train"), parser.get_dataparser_outputs("test")
-    train_images = [load_rgb(Path(f)) for f in train.image_filenames]
-    test_images = [load_rgb(Path(f)) for f in test.image_filenames]
+    # uint8 RGB as the datamanager hands them to SIFT (alpha composited on white).
+    train_images, test_images = load_training_images(train.image_filenames), load_training_images(test.image_filenames)
     start = time.perf_counter()
     row: Dict = {"data": str(data), "train": [Path(f).stem for f in train.image_filenames],
                  "size": f"{train_images[0].shape[1]}x{train_images[0].shape[0]}"}

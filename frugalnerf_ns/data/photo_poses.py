@@ -41,8 +41,7 @@ from frugalnerf_ns.data.sparse_points import (
     extract_sift,
     match_descriptors,
     opencv_projection_matrices,
-    triangulate_dlt,
-    triangulation_angles,
+    triangulate_checked,
 )
 from frugalnerf_ns.geometry.reprojection import project_to_camera
 from frugalnerf_ns.geometry.camera_conventions import opencv_to_opengl
@@ -226,18 +225,12 @@ def triangulate_tracks_in(
         seen = sum(v in local for v, _ in track)
         if seen >= 2:
             by_length.setdefault(seen, []).append(index)
-    for length, indices in by_length.items():
+    for indices in by_length.values():
         view = torch.tensor([[local[v] for v, _ in tracks[t] if v in local] for t in indices], dtype=torch.long)
         observed = torch.stack(
             [torch.stack([keypoints[v][f] for v, f in tracks[t] if v in local]) for t in indices]
         ).double()
-        xyz = triangulate_dlt(projections, view, observed)
-        finite = torch.isfinite(xyz).all(dim=-1)
-        xyz = torch.where(finite[:, None], xyz, torch.zeros_like(xyz))
-        proj = project_to_camera(xyz[:, None].expand(-1, length, -1), c2w[view], intrinsics[view])
-        error = (proj.pixels - observed).norm(dim=-1)
-        angle = triangulation_angles(xyz, c2w[view][..., :3, 3])
-        keep = finite & proj.in_front.all(dim=1) & (error <= max_error).all(dim=1) & (angle >= min_angle)
+        xyz, keep, _ = triangulate_checked(projections, c2w, intrinsics, view, observed, max_error, min_angle)
         rows = np.asarray(indices)[keep.numpy()]
         points[rows] = xyz[keep].numpy()
         valid[rows] = True

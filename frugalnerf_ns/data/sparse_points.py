@@ -144,6 +144,24 @@ def build_tracks(matches: Dict[Tuple[int, int], np.ndarray], num_features: Seque
     return tracks
 
 
+def triangulate_checked(
+    projections: Float[Tensor, "views 3 4"], camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"], view: Int[Tensor, "points k"], observed: Float[Tensor, "points k 2"],
+    max_error: float, min_angle: float,
+):
+    """DLT of points seen in k views each and which to keep: finite, in front of every camera, within
+    ``max_error`` pixels of every observation and seen under at least ``min_angle`` degrees. Returns (points,
+    keep, their projections); a point that cannot be placed is zeros and not kept."""
+    points = triangulate_dlt(projections, view, observed)
+    finite = torch.isfinite(points).all(dim=-1)
+    points = torch.where(finite[:, None], points, torch.zeros_like(points))
+    proj = project_to_camera(points[:, None].expand(-1, view.shape[1], -1), camera_to_worlds[view], intrinsics[view])
+    error = (proj.pixels - observed).norm(dim=-1)
+    angle = triangulation_angles(points, camera_to_worlds[view][..., :3, 3])
+    keep = finite & proj.in_front.all(dim=1) & (error <= max_error).all(dim=1) & (angle >= min_angle)
+    return points, keep, proj
+
+
 def triangulate_tracks(
     tracks: List[List[Tuple[int, int]]],
     keypoints: Sequence[Float[Tensor, "features 2"]],
@@ -171,17 +189,9 @@ def triangulate_tracks(
     for length, group in sorted(by_length.items()):
         view = torch.tensor([[v for v, _ in t] for t in group], dtype=torch.long)
         observed = torch.stack([torch.stack([keypoints[v][f] for v, f in t]) for t in group]).to(dtype)
-        points = triangulate_dlt(projections, view, observed)
-        finite = torch.isfinite(points).all(dim=-1)
-        points = torch.where(finite[:, None], points, torch.zeros_like(points))
-        proj = project_to_camera(points[:, None].expand(-1, length, -1), camera_to_worlds[view], intrinsics[view])
-        error = (proj.pixels - observed).norm(dim=-1)
-        angle = triangulation_angles(points, centers[view])
-        keep = (
-            finite
-            & proj.in_front.all(dim=1)
-            & (error <= options.max_reprojection_error).all(dim=1)
-            & (angle >= options.min_triangulation_angle)
+        points, keep, proj = triangulate_checked(
+            projections, camera_to_worlds, intrinsics, view, observed, options.max_reprojection_error,
+            options.min_triangulation_angle,
         )
         if depth_bounds is not None:
             keep &= ((proj.depth >= depth_bounds[0]) & (proj.depth <= depth_bounds[1])).all(dim=1)
