@@ -6,7 +6,14 @@ import torch
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
-from frugalnerf_ns.model.rendering import render_scale, render_scale_inference
+from frugalnerf_ns.model.rendering import (
+    FAINT_BUDGET,
+    FAINT_WEIGHT,
+    TERMINATION_TRANSMITTANCE,
+    faint_samples_left_out,
+    render_scale,
+    render_scale_inference,
+)
 from tests.helpers import tiny_model
 
 AABB = torch.tensor([[-1.0, -1.2, -0.8], [1.0, 1.2, 0.8]])
@@ -42,12 +49,13 @@ def rays(count: int = 300, seed: int = 1):
 
 
 def both(field, scale, termination, background=torch.tensor([1.0, 1.0, 1.0])):
+    """The oracle and the inference marcher; termination 0 also shades every faint sample (the exact mode)."""
     origins, directions = rays()
     segments = intersect_aabb(origins, directions, field.aabb, 0.0)
     with torch.no_grad():
         dense = render_scale(field, origins, directions, scale, background, segments, **SETTINGS, jitter=False)
         fast = render_scale_inference(field, origins, directions, scale, background, segments, **SETTINGS,
-                                      termination=termination)
+                                      termination=termination, faint_budget=0.0 if termination == 0 else FAINT_BUDGET)
     return dense, fast
 
 
@@ -89,6 +97,58 @@ def test_early_termination_changes_no_pixel_by_a_level_and_skips_lookups(scale, 
     assert sum(looked_up) <= dense.t.shape[0] * dense.slots
     if scale == 0:
         assert sum(looked_up) < 0.3 * dense.t.numel()
+
+
+def test_faint_samples_left_out_are_a_prefix_of_each_rays_faint_ones_within_the_budget():
+    weights = torch.tensor([
+        [1e-3, 0.5, 2e-3, 1e-3, 1e-3, 3e-5],  # faint ones until the budget is spent; 3e-5 is below the threshold
+        [FAINT_WEIGHT, 0.3, 0.2, 0.1, 0.0, 0.0],  # nothing faint: all shaded
+        [2e-3, 3e-3, 5e-4, 0.0, 0.0, 0.0],  # 1e-3 already left out: the first fits, then the prefix ends
+    ])
+    shaded = weights > 1e-4
+    left_so_far = torch.tensor([0.0, 0.0, 1e-3])
+    left = faint_samples_left_out(weights, shaded, left_so_far, budget=3.5e-3)
+    assert left.tolist() == [
+        [True, False, True, False, False, False],
+        [False] * 6,
+        [True, False, False, False, False, False],
+    ]
+    assert not (left & ~shaded).any() and not (left & (weights >= FAINT_WEIGHT)).any()
+    assert ((left_so_far + torch.where(left, weights, 0.0).sum(-1)) <= 3.5e-3 + 1e-12).all()
+    # Random weights: every ray's left-out weight within the budget, and the faint samples left out form a
+    # prefix of its faint ones (a later faint sample is never left out while an earlier one is shaded).
+    generator = torch.Generator().manual_seed(0)
+    weights = torch.rand(500, 40, generator=generator) ** 4 * 0.02
+    shaded = weights > 1e-4
+    left = faint_samples_left_out(weights, shaded, torch.zeros(500), FAINT_BUDGET)
+    assert (torch.where(left, weights, 0.0).sum(-1) <= FAINT_BUDGET + 1e-7).all() and left.any()
+    faint = shaded & (weights < FAINT_WEIGHT)
+    kept_faint = (faint & ~left).to(torch.int8)
+    first_kept = torch.where(kept_faint.any(-1), kept_faint.argmax(-1), 40)
+    assert not (left & (torch.arange(40)[None, :] > first_kept[:, None])).any()
+
+
+def test_faint_samples_save_colour_reads_and_move_no_pixel_by_a_level(monkeypatch):
+    field = opaque_field(mask=True)
+    origins, directions = rays()
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    background = torch.tensor([0.2, 0.5, 1.0])
+    shaded = []
+    inference_color = field.inference_color
+
+    def counting(positions, directions, scale=0):
+        shaded.append(positions.shape[0])
+        return inference_color(positions, directions, scale)
+
+    monkeypatch.setattr(field, "inference_color", counting)
+    with torch.no_grad():
+        every = render_scale_inference(field, origins, directions, 0, background, segments, **SETTINGS, faint_budget=0.0)
+        every_count, shaded[:] = sum(shaded), []
+        faint = render_scale_inference(field, origins, directions, 0, background, segments, **SETTINGS)
+    assert sum(shaded) < 0.95 * every_count
+    assert (faint.rgb - every.rgb).abs().max() <= FAINT_BUDGET + 1e-6
+    assert torch.equal(faint.accumulation, every.accumulation) and torch.equal(faint.depth, every.depth)
+    assert FAINT_BUDGET + TERMINATION_TRANSMITTANCE < 1.0 / 255
 
 
 def test_half_precision_inputs_composite_in_float32():
