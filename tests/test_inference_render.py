@@ -48,6 +48,14 @@ def rays(count: int = 300, seed: int = 1):
     return origins, directions
 
 
+def masked_slab_scene():
+    """The slab field with its alpha mask, the test rays, their segments and a coloured background."""
+    field = opaque_field(mask=True)
+    origins, directions = rays()
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    return field, origins, directions, segments, torch.tensor([0.2, 0.5, 1.0])
+
+
 def both(field, scale, termination, background=torch.tensor([1.0, 1.0, 1.0])):
     """The oracle and the inference marcher; termination 0 also shades every faint sample (the exact mode)."""
     origins, directions = rays()
@@ -71,10 +79,7 @@ def test_without_termination_the_blocks_give_the_dense_pixels(scale, mask):
 
 @pytest.mark.parametrize("scale", [0, 1, 2])
 def test_early_termination_changes_no_pixel_by_a_level_and_skips_lookups(scale, monkeypatch):
-    field = opaque_field(mask=True)
-    origins, directions = rays()
-    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
-    background = torch.tensor([0.2, 0.5, 1.0])
+    field, origins, directions, segments, background = masked_slab_scene()
     looked_up = []
     occupied_density = field.occupied_density
 
@@ -100,21 +105,22 @@ def test_early_termination_changes_no_pixel_by_a_level_and_skips_lookups(scale, 
 
 
 def test_faint_samples_left_out_are_a_prefix_of_each_rays_faint_ones_within_the_budget():
+    f = FAINT_WEIGHT
     weights = torch.tensor([
-        [1e-3, 0.5, 2e-3, 1e-3, 1e-3, 3e-5],  # faint ones until the budget is spent; 3e-5 is below the threshold
-        [FAINT_WEIGHT, 0.3, 0.2, 0.1, 0.0, 0.0],  # nothing faint: all shaded
-        [2e-3, 3e-3, 5e-4, 0.0, 0.0, 0.0],  # 1e-3 already left out: the first fits, then the prefix ends
+        [0.5 * f, 0.5, 0.9 * f, 0.5 * f, 0.5 * f, 3e-5],  # faint ones until the budget is spent; 3e-5: not shaded
+        [f, 0.3, 0.2, 0.1, 0.0, 0.0],  # nothing below FAINT_WEIGHT: all shaded
+        [0.9 * f, 0.95 * f, 0.1 * f, 0.0, 0.0, 0.0],  # 0.5 f already left out: the first fits, then the prefix ends
     ])
     shaded = weights > 1e-4
-    left_so_far = torch.tensor([0.0, 0.0, 1e-3])
-    left = faint_samples_left_out(weights, shaded, left_so_far, budget=3.5e-3)
+    left_so_far = torch.tensor([0.0, 0.0, 0.5 * f])
+    left = faint_samples_left_out(weights, shaded, left_so_far, budget=1.6 * f)
     assert left.tolist() == [
         [True, False, True, False, False, False],
         [False] * 6,
         [True, False, False, False, False, False],
     ]
     assert not (left & ~shaded).any() and not (left & (weights >= FAINT_WEIGHT)).any()
-    assert ((left_so_far + torch.where(left, weights, 0.0).sum(-1)) <= 3.5e-3 + 1e-12).all()
+    assert ((left_so_far + torch.where(left, weights, 0.0).sum(-1)) <= 1.6 * f + 1e-12).all()
     # Random weights: every ray's left-out weight within the budget, and the faint samples left out form a
     # prefix of its faint ones (a later faint sample is never left out while an earlier one is shaded).
     generator = torch.Generator().manual_seed(0)
@@ -129,10 +135,7 @@ def test_faint_samples_left_out_are_a_prefix_of_each_rays_faint_ones_within_the_
 
 
 def test_faint_samples_save_colour_reads_and_move_no_pixel_by_a_level(monkeypatch):
-    field = opaque_field(mask=True)
-    origins, directions = rays()
-    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
-    background = torch.tensor([0.2, 0.5, 1.0])
+    field, origins, directions, segments, background = masked_slab_scene()
     shaded = []
     inference_color = field.inference_color
 
