@@ -48,6 +48,16 @@ def test_the_start_up_summary_names_each_decision_and_its_override(procedural_sc
     assert "novel rays off (360 scene)" in summary
     detected = scene_summary(auto := manager_for(procedural_scene, sparse_cache_dir=tmp_path), model_for(auto))
     assert detected.startswith("frugalnerf scene: object (detected") and "--pipeline.model.auto-grid sizes it" in detected
+    assert "space: bounded box" in detected
+    # An LLFF-layout split modelled in NDC (the layout's space) is called forward-facing only when it is one.
+    ndc = {"focal": 100.0, "width": 64.0, "height": 48.0, "near": 1.0}
+    in_ndc = model_for(auto)
+    in_ndc.ndc = ndc
+    assert "space: NDC (the data's near/far bounds), although the split is not forward-facing" in scene_summary(auto, in_ndc)
+    forward = manager_for(procedural_scene, scene_type="forward-facing", sparse_cache_dir=tmp_path)
+    forward_model = model_for(forward)
+    forward_model.ndc = ndc
+    assert "space: NDC (forward-facing, the data's near/far bounds)" in scene_summary(forward, forward_model)
 
 
 def test_metric_box_is_fitted_to_what_the_training_views_see(procedural_scene, tmp_path):

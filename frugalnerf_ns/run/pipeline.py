@@ -46,7 +46,14 @@ def scene_summary(datamanager, model) -> str:
     layout, dm, cfg = datamanager.scene_layout, datamanager.config, model.config
     detected = "detected" if dm.scene_type == "auto" else "set by --pipeline.datamanager.scene-type"
     views = len(datamanager.warp_images)
-    if model.ndc is not None:
+    if model.ndc is not None and datamanager.scene_type != "forward-facing":
+        # The LLFF layout is modelled in NDC whatever the split; say so rather than call the split forward-facing.
+        space = (
+            f"NDC (the data's near/far bounds), although the split is not forward-facing: NDC looks along the "
+            "training cameras' mean direction, and views far from it render poorly (no metric space with a far "
+            "background yet; docs/captures.md)"
+        )
+    elif model.ndc is not None:
         space = "NDC (forward-facing, the data's near/far bounds)"
     else:
         size = model.field.aabb[1] - model.field.aabb[0]
