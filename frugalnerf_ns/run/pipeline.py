@@ -49,7 +49,7 @@ def scene_summary(datamanager, model) -> str:
     if model.ndc is not None and datamanager.scene_type != "forward-facing":
         # The LLFF layout is modelled in NDC whatever the split; say so rather than call the split forward-facing.
         space = (
-            f"NDC (the data's near/far bounds), although the split is not forward-facing: NDC looks along the "
+            "NDC (the data's near/far bounds), although the split is not forward-facing: NDC looks along the "
             "training cameras' mean direction, and views far from it render poorly (no metric space with a far "
             "background yet; docs/captures.md)"
         )
