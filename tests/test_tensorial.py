@@ -439,3 +439,19 @@ def test_shared_density_nodes_are_made_with_gradients_and_only_inside_the_block(
     assert torch.allclose(shared, reference, rtol=1e-5, atol=1e-6)
     shared.sum().backward()
     assert all(p.grad is not None and p.grad.abs().max() > 0 for p in field.density_grid.parameters())
+
+
+def test_grids_above_the_shared_nodes_limit_read_their_planes_in_training(monkeypatch):
+    from frugalnerf_ns.field import radiance_field
+
+    field = FrugalNeRFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), (9, 9, 9), mlp_implementation="torch")
+    points = torch.rand(300, 3) * 2 - 1
+    monkeypatch.setattr(radiance_field, "SHARED_NODES_MAX_ENTRIES", 9**3)  # the grid itself: still shared
+    with field.shared_density_nodes():
+        field.density(points, 1)
+        assert field._shared_nodes is not None and field._shared_nodes[0] is not None
+    monkeypatch.setattr(radiance_field, "SHARED_NODES_MAX_ENTRIES", 9**3 - 1)  # one node fewer: the planes
+    with field.shared_density_nodes():
+        assert field._shared_nodes is None
+        planes = field.density(points, 1)
+    assert torch.allclose(planes, field.density(points, 1), rtol=0, atol=0)

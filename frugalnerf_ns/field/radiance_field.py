@@ -26,6 +26,13 @@ BAKED_DENSITY_MAX_ENTRIES = 2**26
 """Largest grid (nodes) whose density is baked into one dense tensor for rendering outside training: 256 MiB
 in float32 (a 400^3 grid). The paper preset's 640^3 grid reads its planes instead."""
 
+SHARED_NODES_MAX_ENTRIES = 2**24
+"""Largest grid (nodes) whose training steps read density from one node tensor (``shared_density_nodes``); larger
+grids read their planes. The node tensor costs a fixed pass over every node per step (its sum, its gradient's
+zero-fill and six matrix products back), the plane reads a cost per sample: on fern's 2-view runs the nodes were
+1.26x faster on a 177x193x113 grid (3.9 M nodes) and the planes 1.12-1.16x faster on 353x385x241 (32.7 M, the
+paper's grid ratio at 1/8 resolution). 2^24 (256^3) lies between the two."""
+
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
 (the CPU presets' ~4 M nodes x 27; the paper preset's grid reads its planes)."""
@@ -209,8 +216,9 @@ class FrugalNeRFField(nn.Module):
         gradient) at every scale (``read_node_sum``): the planes' values and gradients to float rounding, at a
         fixed cost of a few matrix products per block instead of 3 planes x 4 corners x C channels per sample.
         A training step's forward pass is the block: its reads of all scales share the nodes. Grids above
-        ``BAKED_DENSITY_MAX_ENTRIES`` nodes (the paper preset's 640^3) read the planes."""
-        shared = enabled and math.prod(self.density_grid.resolution_tuple) <= BAKED_DENSITY_MAX_ENTRIES
+        ``SHARED_NODES_MAX_ENTRIES`` nodes (256^3; the paper preset's 640^3) read the planes: there a pass over
+        every node per step costs more than the plane reads at the samples."""
+        shared = enabled and math.prod(self.density_grid.resolution_tuple) <= SHARED_NODES_MAX_ENTRIES
         previous, self._shared_nodes = self._shared_nodes, ([None] if shared else None)
         try:
             yield

@@ -81,8 +81,9 @@ class FrugalNeRFSettings(ModelConfig):
     16k+1 sizes of ``scale_spanning_grid``, where both readings are the same)."""
     training_density_read: Literal["nodes", "planes"] = "nodes"
     """How a training step reads density: "nodes", every plane times its line summed on the grid's nodes once
-    per step and read trilinearly at every scale (``FrugalNeRFField.shared_density_nodes``); "planes", the
-    planes and lines at every sample (the reference; same values and gradients to float rounding)."""
+    per step and read trilinearly at every scale (``FrugalNeRFField.shared_density_nodes``; grids above 256^3
+    nodes read the planes, where that is faster); "planes", the planes and lines at every sample (the reference;
+    same values and gradients to float rounding)."""
     step_ratio: float = 0.5
     """Sample step at full resolution, in voxels."""
     max_samples_per_ray: int = 1024
