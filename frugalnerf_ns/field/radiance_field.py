@@ -29,9 +29,9 @@ in float32 (a 400^3 grid). The paper preset's 640^3 grid reads its planes instea
 SHARED_NODES_MAX_ENTRIES = 2**24
 """Largest grid (nodes) whose training steps read density from one node tensor (``shared_density_nodes``); larger
 grids read their planes. The node tensor costs a fixed pass over every node per step (its sum, its gradient's
-zero-fill and six matrix products back), the plane reads a cost per sample: on fern's 2-view runs the nodes were
-1.26x faster on a 177x193x113 grid (3.9 M nodes) and the planes 1.12-1.16x faster on 353x385x241 (32.7 M, the
-paper's grid ratio at 1/8 resolution). 2^24 (256^3) lies between the two."""
+zero-fill and six matrix products back), the plane reads a cost per sample: on 2-view LLFF runs the nodes were
+1.26x faster on a 177x193x113 grid (3.9 M nodes) and the planes 1.02-1.24x faster (four pairs) on 353x385x241
+(32.7 M, the paper's grid ratio at 1/8 resolution). 2^24 (256^3) lies between the two (not measured there)."""
 
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
