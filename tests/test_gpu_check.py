@@ -101,3 +101,39 @@ def test_dry_run_of_every_part(tmp_path):
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     parts = {row["part"] for row in json.loads((tmp_path / "gpu_check.json").read_text())["rows"]}
     assert parts == set(gpu_check.PARTS)
+
+
+def load_script(name: str):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_grid_ratio_driver_reads_progress_and_checkpoints(tmp_path):
+    """The GPU ablation driver scores a stopped run at its latest checkpoint and reads the step it reached."""
+    driver = load_script("gpu_grid_ratio")
+    log = tmp_path / "train.log"
+    log.write_bytes(b"Step (% Done)       Train Iter (time)\n------\n990 (66.00%)        1 s, 2 ms   \x1b[0m\n"
+                    b"1000 (66.67%)       994.320 ms          \x1b[0m\nfrugalnerf: stopped by SIGTERM after step 1003\n")
+    assert driver.last_logged_step(log) == 1000
+    assert driver.last_logged_step(tmp_path / "missing.log") is None
+    models = tmp_path / "run" / "nerfstudio_models"
+    assert driver.latest_checkpoint(tmp_path / "run") is None
+    models.mkdir(parents=True)
+    for step in (500, 1000, 999):
+        (models / f"step-{step:09d}.ckpt").write_bytes(b"")
+    assert driver.latest_checkpoint(tmp_path / "run").name == "step-000001000.ckpt"
+    text = driver.table([{"scene": "fern", "variant": "nogeo", "seed": 42, "psnr": 18.214, "ssim": 0.4987,
+                          "lpips": 0.5361, "train_s": 410.2, "checkpoint_step": 3500, "ran_beside": 1,
+                          "stopped_at_budget": True}])
+    assert "| fern | nogeo | 42 | 18.21 | 0.499 | 0.536 | 410.2 | 3500 | 1 | stopped at budget |" in text
+    # Every variant's options exist in the model config (a typo would make every run of it fail on the GPU).
+    from frugalnerf_ns.model.frugalnerf import FrugalNeRFModelConfig
+
+    fields = set(FrugalNeRFModelConfig.__dataclass_fields__)
+    for options in driver.VARIANTS.values():
+        for option in options[::2]:
+            assert option.removeprefix("--pipeline.model.").replace("-", "_") in fields
