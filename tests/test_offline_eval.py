@@ -59,6 +59,8 @@ def test_mean_scores_average_each_metric_over_the_views_that_have_it():
 
 @pytest.mark.parametrize("args, words", [
     (["eval", "--help"], "usage: python -m frugalnerf_ns.tools.offline_tools eval"),
+    (["eval", "--per-view"], "usage: python -m frugalnerf_ns.tools.offline_tools eval"),
+    (["eval", "--per-view", __file__, "x"], "frugalnerf: error: steps must be whole numbers, got x"),
     (["eval", "no/such/config.yml"], "frugalnerf: error: no/such/config.yml is not a run's config.yml"),
     (["eval", __file__, "last"], "frugalnerf: error: steps must be whole numbers, got last"),
 ])

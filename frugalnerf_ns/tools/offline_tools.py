@@ -4,9 +4,10 @@
 torchmetrics' LPIPS (which tensorf and nerfacto build at start-up and which downloads AlexNet) is replaced
 by the offline LPIPS of this package, so baselines train on a machine without network.
 
-``python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml``: renders the test views of a trained run
-and prints PSNR / SSIM / LPIPS as JSON, computed by one piece of code for every method, with the DTU
-object masks when the dataparser provides them (so baselines are scored on the paper's protocol too).
+``python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [--per-view]``: renders the test views of a
+trained run and prints PSNR / SSIM / LPIPS as JSON (with ``--per-view``, each view's line first), computed by
+one piece of code for every method, with the DTU object masks when the dataparser provides them (so baselines
+are scored on the paper's protocol too).
 """
 
 from __future__ import annotations
@@ -84,9 +85,10 @@ def score_test_view(pipeline, dataset, index: int, lpips) -> Dict[str, float]:
     return masked_image_metrics(rgb, image, mask.to(rgb.device), ssim, lpips)
 
 
-def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, float]:
+def evaluate_run(config_path: Path, step: Optional[int] = None, print_views: bool = False) -> Dict[str, float]:
     """Test-view PSNR / SSIM / LPIPS of a trained run (masked where the dataparser gives eval masks), at its
-    latest checkpoint or at the checkpoint of ``step``."""
+    latest checkpoint or at the checkpoint of ``step``; with ``print_views``, one ``VIEW {json}`` line per test
+    view first (its image name and scores: which views a change helped)."""
     from nerfstudio.utils.eval_utils import eval_setup
 
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
@@ -103,6 +105,9 @@ def evaluate_run(config_path: Path, step: Optional[int] = None) -> Dict[str, flo
     pipeline.eval()
     for index in range(len(dataset)):
         per_view.append(score_test_view(pipeline, dataset, index, lpips))
+        if print_views:
+            view = {"view": Path(dataset.image_filenames[index]).stem, **per_view[-1], "step": step}
+            print("VIEW " + json.dumps(view), flush=True)
     result: Dict[str, float] = mean_scores(per_view) | {"num_test_views": len(dataset)}
     # Published shorter test lists (DTU: RegNeRF's 25 of the 40 views) scored beside the full list.
     for name, positions in (dataset.metadata.get("test_subsets") or {}).items():
@@ -128,7 +133,9 @@ def main() -> None:
         sys.argv = ["ns-train", *rest]
         entrypoint()
     else:
-        usage = "usage: python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [step ...]"
+        usage = "usage: python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [step ...] [--per-view]"
+        print_views = "--per-view" in rest
+        rest = [arg for arg in rest if arg != "--per-view"]
         if not rest or rest[0] in ("-h", "--help"):
             sys.exit(usage)
         if not Path(rest[0]).is_file():
@@ -138,7 +145,7 @@ def main() -> None:
         # One line per checkpoint step asked for (the latest without steps), in one process: nerfstudio's
         # start-up costs more than scoring a few small test views.
         for step in [int(s) for s in rest[1:]] or [None]:
-            print("RESULT " + json.dumps(evaluate_run(Path(rest[0]), step) | {"step": step}), flush=True)
+            print("RESULT " + json.dumps(evaluate_run(Path(rest[0]), step, print_views) | {"step": step}), flush=True)
 
 
 if __name__ == "__main__":
