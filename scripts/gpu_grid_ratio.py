@@ -177,7 +177,7 @@ def main(argv=None) -> int:
     if args.end is not None:
         END[0] = started + args.end
     queue = [Job(scene, variant, seed, args) for seed in args.seeds for scene in args.scenes for variant in args.variants]
-    first_wave = len(queue[: args.parallel])
+    first_wave = min(args.parallel, len(queue))
     started_jobs: List[Job] = []
     last_report = time.time()
     while queue or any(j.thread.is_alive() for j in started_jobs):
