@@ -12,11 +12,8 @@ a run's log says whether fitting changed it ("the training views see all of the 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
-
-import numpy as np
-import torch
-from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -27,6 +24,9 @@ def main(argv=None) -> None:
     parser.add_argument("--views", type=int, nargs="+", default=[22, 25, 28])
     parser.add_argument("--edge", type=int, default=20, help="pixel columns counted as an image edge")
     args = parser.parse_args(argv)
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from diagnose_views import object_mask  # the DTU image -> mask pairing the other diagnostics use
 
     from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
     from frugalnerf_ns.geometry.raymarch import intersect_aabb
@@ -41,9 +41,9 @@ def main(argv=None) -> None:
         height, width = rays.origins.shape[:2]
         hit = intersect_aabb(rays.origins.reshape(-1, 3).float(), rays.directions.reshape(-1, 3).float(), aabb).hit
         miss = ~hit.reshape(height, width)
-        mask_file = args.data / "mask" / f"{int(Path(name).stem):03d}.png"
-        with Image.open(mask_file) as image:
-            mask = torch.from_numpy(np.asarray(image.convert("L").resize((width, height), Image.NEAREST)) > 127)
+        mask = object_mask(args.data / "mask", Path(name))
+        if mask is None or mask.shape != miss.shape:
+            raise SystemExit(f"box_coverage: error: no {height}x{width} mask for {name} in {args.data / 'mask'}")
         edge = args.edge
         print(f"| {Path(name).stem} | {float(miss.float().mean()):.3f} | {int((miss & mask).sum())} of {int(mask.sum())} | "
               f"{float(miss[:, :edge].float().mean()):.2f} / {float(miss[:, -edge:].float().mean()):.2f} |")
