@@ -233,3 +233,28 @@ def test_a_recorded_baseline_names_the_commit_each_scene_trained_at(tmp_path):
     recorded = gate.load_baseline(baseline)
     assert recorded["scenes"]["a-2v"]["commit"] == "aaaa111" and recorded["scenes"]["b-2v"]["commit"] == "bbbb222"
     assert recorded["commit"] == "aaaa111+bbbb222"
+
+
+def test_one_scene_can_be_gated_with_several_view_counts(tmp_path, capsys):
+    """An entry names its scene with `scene:`: fern with 2 views and with 3 are two gate scenes with their own
+    runs and labels; two entries for the same scene and view count are refused in one line."""
+    scenes = {"data_root": ".", "scenes": {"a": {"data": "a", "parser": ["frugal-llff"], "preset": "frugalnerf-tiny",
+                                                 "views": {2: ["--train-views", "0", "1"],
+                                                           3: ["--num-train-views", "3"]}}}}
+    (tmp_path / "scenes.yaml").write_text(yaml.safe_dump(scenes))
+    tol = {"psnr": 0.3, "ssim": 0.01, "lpips": 0.015}
+    gate_file = tmp_path / "gate.yaml"
+    gate_file.write_text(yaml.safe_dump({"scenes_file": "scenes.yaml", "scenes": {
+        "a": {"views": 2, "seeds": [1], "tolerance": tol},
+        "a_3v": {"scene": "a", "views": 3, "seeds": [1, 2], "tolerance": tol}}}))
+    scenes_file, gated = gate.load_gate(gate_file)
+    assert [(s.name, s.label) for s in gated] == [("a", "a-2v"), ("a", "a-3v")]
+    specs = gate.gate_specs(scenes_file, gated)
+    assert specs["a-2v"][0].parser_args[-3:] == ["--train-views", "0", "1"]
+    assert [s.parser_args[-2:] for s in specs["a-3v"]] == [["--num-train-views", "3"]] * 2
+    assert len({s.key for group in specs.values() for s in group}) == 3
+    gate_file.write_text(yaml.safe_dump({"scenes_file": "scenes.yaml", "scenes": {
+        "a": {"views": 3, "seeds": [1], "tolerance": tol},
+        "a_3v": {"scene": "a", "views": 3, "seeds": [2], "tolerance": tol}}}))
+    assert gate.main(["--gate", str(gate_file), "--list"]) == 2
+    assert capsys.readouterr().err.strip() == f"frugalnerf-gate: {gate_file}: entries 'a' and 'a_3v' both gate a-3v"

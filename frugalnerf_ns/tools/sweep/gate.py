@@ -79,27 +79,36 @@ def load_gate(path: Path = GATE_FILE) -> tuple:
     scenes = gate.get("scenes")
     if not isinstance(scenes, dict) or not scenes:
         raise GateError(f"{path}: `scenes:` is empty or missing")
-    out = []
-    for name, entry in scenes.items():
+    out, labels = [], {}
+    for key, entry in scenes.items():
         entry = entry or {}
         if not isinstance(entry, dict):
-            raise GateError(f"{path}: scene {name!r} must map views / seeds / tolerance to values")
+            raise GateError(f"{path}: scene {key!r} must map views / seeds / tolerance to values")
+        # An entry's key is the scene's name in the scenes file unless it names one with `scene:`, so one scene
+        # can be gated with several view counts (fern with 2 views and with 3).
+        name = entry.get("scene", key)
+        if not isinstance(name, str) or not name:
+            raise GateError(f"{path}: entry {key!r}: `scene:` must name a scene of the scenes file, not {name!r}")
         seeds = entry.get("seeds")
         if not isinstance(seeds, list) or not seeds or not all(_is_int(s) for s in seeds):
-            raise GateError(f"{path}: scene {name!r} needs `seeds:`, a list of integers")
+            raise GateError(f"{path}: scene {key!r} needs `seeds:`, a list of integers")
         tolerance = entry.get("tolerance") or {}
         if not isinstance(tolerance, dict):
-            raise GateError(f"{path}: scene {name!r}: `tolerance:` must map psnr / ssim / lpips to numbers")
+            raise GateError(f"{path}: scene {key!r}: `tolerance:` must map psnr / ssim / lpips to numbers")
         missing = [m for m in METRICS if not _is_number(tolerance.get(m))]
         if missing:
-            raise GateError(f"{path}: scene {name!r} has no tolerance for {', '.join(missing)}")
+            raise GateError(f"{path}: scene {key!r} has no tolerance for {', '.join(missing)}")
         views, max_spread = entry.get("views", 2), entry.get("max_spread")
         if not _is_int(views) or views < 1:
-            raise GateError(f"{path}: scene {name!r}: `views:` must be a positive integer, not {views!r}")
+            raise GateError(f"{path}: scene {key!r}: `views:` must be a positive integer, not {views!r}")
         if max_spread is not None and not _is_number(max_spread):
-            raise GateError(f"{path}: scene {name!r}: `max_spread:` must be a number of dB, not {max_spread!r}")
-        out.append(GateScene(str(name), int(views), list(seeds), {m: float(tolerance[m]) for m in METRICS},
-                             None if max_spread is None else float(max_spread)))
+            raise GateError(f"{path}: scene {key!r}: `max_spread:` must be a number of dB, not {max_spread!r}")
+        scene = GateScene(str(name), int(views), list(seeds), {m: float(tolerance[m]) for m in METRICS},
+                          None if max_spread is None else float(max_spread))
+        if scene.label in labels:
+            raise GateError(f"{path}: entries {labels[scene.label]!r} and {key!r} both gate {scene.label}")
+        labels[scene.label] = key
+        out.append(scene)
     scenes_file = (Path(path).parent / gate.get("scenes_file", "benchmark_scenes.yaml")).resolve()
     return scenes_file, out
 
