@@ -16,20 +16,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_repository_gate_covers_every_scene_with_its_cpu_preset():
     scenes_file, scenes = gate.load_gate(ROOT / "configs" / "gate.yaml")
-    by_name = {s.name: s for s in scenes}
-    assert set(by_name) == {"fern", "flower", "horns", "dtu_scan65", "juice_box"}
-    assert len(by_name["horns"].seeds) >= 2 and by_name["horns"].max_spread is not None
+    by_label = {s.label: s for s in scenes}
+    assert set(by_label) == {"fern-2v", "fern-3v", "flower-2v", "horns-2v", "dtu_scan65-2v", "juice_box-3v"}
+    assert len(by_label["horns-2v"].seeds) >= 2 and by_label["horns-2v"].max_spread is not None
     specs = gate.gate_specs(scenes_file, scenes)
     methods = {label: {s.method for s in group} for label, group in specs.items()}
-    assert methods == {"fern-2v": {"frugalnerf-cpu"}, "flower-2v": {"frugalnerf-cpu"}, "horns-2v": {"frugalnerf-cpu"},
-                       "dtu_scan65-2v": {"frugalnerf-dtu-cpu"}, "juice_box-3v": {"frugalnerf-cpu"}}
+    assert methods == {"fern-2v": {"frugalnerf-cpu"}, "fern-3v": {"frugalnerf-cpu"}, "flower-2v": {"frugalnerf-cpu"},
+                       "horns-2v": {"frugalnerf-cpu"}, "dtu_scan65-2v": {"frugalnerf-dtu-cpu"},
+                       "juice_box-3v": {"frugalnerf-cpu"}}
+    assert specs["fern-3v"][0].parser_args[-2:] == ["--num-train-views", "3"]
     horns = specs["horns-2v"]
-    assert [s.seed for s in horns] == by_name["horns"].seeds
+    assert [s.seed for s in horns] == by_label["horns-2v"].seeds
     assert horns[0].parser_args[-3:] == ["--train-views", "20", "42"]
     # each seed seeds both nerfstudio and our batch sampler
     assert horns[1].train_args[-4:] == ["--machine.seed", str(horns[1].seed), "--pipeline.datamanager.seed",
                                         str(horns[1].seed)]
-    assert len({s.key for group in specs.values() for s in group}) == 6
+    assert len({s.key for group in specs.values() for s in group}) == 7
 
 
 def _scene(max_spread=None, seeds=(1, 2)):
