@@ -196,6 +196,39 @@ def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):
         model.config.geo_weight = 0.01
 
 
+def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
+    from types import SimpleNamespace
+
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+
+    model, bundle, batch = model_and_batch
+    trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=10, steps_per_save=1000), base_dir=".")
+    attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)
+    before = [c for c in model.get_training_callbacks(attrs) if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION in c.where_to_run]
+
+    def geo_loss_at(step):
+        for callback in before:
+            callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        torch.manual_seed(0)
+        outputs = model(bundle)
+        return float(model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))["geo_loss"])
+
+    model.config.geo_weight_decay = 0.1
+    try:
+        start, middle, end = geo_loss_at(0), geo_loss_at(5), geo_loss_at(10)
+        assert start > 0
+        assert middle == pytest.approx(0.1**0.5 * start, rel=1e-4)
+        assert end == pytest.approx(0.1 * start, rel=1e-4)
+        # The other decaying weights keep their own ratio (loss_weight_decay), not lambda_geo's.
+        assert model.loss_schedule_factor == pytest.approx(model.config.loss_weight_decay)
+        model.config.geo_weight_decay = 1.0
+        assert geo_loss_at(10) == pytest.approx(start, rel=1e-4)
+    finally:
+        model.config.geo_weight_decay = 1.0
+        for callback in before:
+            callback.run_callback_at_location(0, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+
+
 def test_rays_without_another_view_are_left_out():
     # One camera at the origin looking down -z; rays whose nearest view is -1 (a single training view).
     images = torch.rand(1, 8, 8, 3)

@@ -132,6 +132,10 @@ class FrugalNeRFSettings(ModelConfig):
     """Mip-NeRF 360 distortion loss."""
     geo_weight: float = 0.01
     """lambda_geo of the cross-scale geometric adaptation loss (Eq. 10-11); 0 turns it off."""
+    geo_weight_decay: float = 1.0
+    """lambda_geo at the last step over lambda_geo at the first, falling geometrically with the step as the
+    loss_weight_decay weights do; 1 keeps it constant (the paper and the reference code). Not a paper setting:
+    a strong pull while the geometry forms and a weak one while the full scale sharpens."""
     reprojection_error: ErrorKind = "rmse"
     """How a patch's reprojection error (Eq. 2) aggregates per-channel squared colour differences over the
     patch: rmse (reference code) or mse. Out-of-image / behind-camera pixels count as error 1."""

@@ -96,8 +96,10 @@ def training_losses(
     views: Optional[ReferenceViews],
     decay: float,
     occlusion_active: bool,
+    geo_factor: float = 1.0,
 ) -> Dict[str, Tensor]:
-    """Every term of the objective for one training step (nerfstudio sums them)."""
+    """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
+    lambda_geo (its schedule, geo_weight_decay)."""
     device = render.background.device
     target = target_rgb(batch.image.to(device), render.background)
     predictions = [scale.rgb[batch.train] for scale in render.scales]
@@ -107,7 +109,7 @@ def training_losses(
         terms.update(sample_regularizers(cfg, field_, render, decay, occlusion_active))
     adaptation = geometric_adaptation(cfg, render, batch, views)
     if adaptation is not None:  # Eq. 10: training patches and novel rays
-        terms["geo_loss"] = cfg.geo_weight * (adaptation.loss_train + adaptation.loss_novel)
+        terms["geo_loss"] = cfg.geo_weight * geo_factor * (adaptation.loss_train + adaptation.loss_novel)
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
         sparse = sum(losses.inverse_depth_loss(d[batch.sparse], batch.sparse_depth.to(device)) for d in render.metric_depths)
         terms["sparse_depth"] = cfg.sparse_depth_weight * decay * sparse

@@ -28,6 +28,7 @@ class ScheduledModel(Protocol):
     scale_history: ScaleFractionHistory
     step: int
     loss_schedule_factor: float
+    geo_schedule_factor: float
 
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]: ...
 
@@ -79,6 +80,7 @@ def training_callbacks(model: ScheduledModel, training_callback_attributes: Trai
         # From the absolute step (not accumulated), so a resumed run continues the same curve.
         if length is not None:
             model.loss_schedule_factor = losses.loss_weight_schedule(step, length, model.config.loss_weight_decay)
+            model.geo_schedule_factor = losses.loss_weight_schedule(step, length, model.config.geo_weight_decay)
 
     return [
         TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], follow_step),
