@@ -229,6 +229,27 @@ def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
             callback.run_callback_at_location(0, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
 
 
+def test_geo_novel_weight_weighs_the_novel_rays_term_alone(model_and_batch):
+    model, bundle, batch = model_and_batch
+
+    def geo_loss(weight, novel_weight):
+        model.config.geo_weight, model.config.geo_novel_weight = weight, novel_weight
+        torch.manual_seed(0)
+        outputs = model(bundle)
+        return model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch)).get("geo_loss")
+
+    try:
+        both = float(geo_loss(1.0, None))
+        train_only = float(geo_loss(1.0, 0.0))
+        novel_only = geo_loss(0.0, 1.0)  # the adaptation still runs with lambda_geo 0 on the training patches
+        assert novel_only is not None and float(novel_only) > 0 and train_only > 0
+        assert both == pytest.approx(train_only + float(novel_only), rel=1e-4)
+        assert float(geo_loss(1.0, 3.0)) == pytest.approx(train_only + 3 * float(novel_only), rel=1e-4)
+        assert geo_loss(0.0, 0.0) is None
+    finally:
+        model.config.geo_weight, model.config.geo_novel_weight = 0.01, None
+
+
 def test_rays_without_another_view_are_left_out():
     # One camera at the origin looking down -z; rays whose nearest view is -1 (a single training view).
     images = torch.rand(1, 8, 8, 3)

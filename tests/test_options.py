@@ -33,6 +33,7 @@ def test_every_preset_passes_the_checks(preset):
         ("schedule_steps", 0, "--schedule-steps must be >= 1 (or unset: the run's iterations), got 0"),
         ("pipeline.model.loss_weight_decay", 0.0, "--pipeline.model.loss-weight-decay must be > 0"),
         ("pipeline.model.geo_weight_decay", 0.0, "--pipeline.model.geo-weight-decay must be > 0"),
+        ("pipeline.model.geo_novel_weight", -0.1, "--pipeline.model.geo-novel-weight must be >= 0 and finite, got -0.1"),
         ("pipeline.datamanager.num_novel_rays_per_batch", -1, "got -1"),
         ("pipeline.model.scale_spanning_scales", 0, "--pipeline.model.scale-spanning-scales must be >= 1 (or None: all), got 0"),
     ],

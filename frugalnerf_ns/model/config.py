@@ -132,6 +132,10 @@ class FrugalNeRFSettings(ModelConfig):
     """Mip-NeRF 360 distortion loss."""
     geo_weight: float = 0.01
     """lambda_geo of the cross-scale geometric adaptation loss (Eq. 10-11); 0 turns it off."""
+    geo_novel_weight: Optional[float] = None
+    """lambda_geo of the novel-view rays' term (Eq. 11's second summand) where it differs from the training
+    patches' (geo_weight); None: geo_weight for both, as the paper. Not a paper setting: the novel rays' term is
+    what suppresses floaters where no training view looks (Sec. 3.3)."""
     geo_weight_decay: float = 1.0
     """lambda_geo at the last step over lambda_geo at the first, falling geometrically with the step as the
     loss_weight_decay weights do; 1 keeps it constant (the paper and the reference code). Not a paper setting:

@@ -9,7 +9,7 @@ the start) while the distortion weight grows with it.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, List, NamedTuple, Optional
+from typing import TYPE_CHECKING, Dict, List, NamedTuple, Optional, Tuple
 
 import torch
 from jaxtyping import Bool, Float, Int
@@ -109,7 +109,8 @@ def training_losses(
         terms.update(sample_regularizers(cfg, field_, render, decay, occlusion_active))
     adaptation = geometric_adaptation(cfg, render, batch, views)
     if adaptation is not None:  # Eq. 10: training patches and novel rays
-        terms["geo_loss"] = cfg.geo_weight * geo_factor * (adaptation.loss_train + adaptation.loss_novel)
+        train_weight, novel_weight = geo_weights(cfg)
+        terms["geo_loss"] = geo_factor * (train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel)
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
         sparse = sum(losses.inverse_depth_loss(d[batch.sparse], batch.sparse_depth.to(device)) for d in render.metric_depths)
         terms["sparse_depth"] = cfg.sparse_depth_weight * decay * sparse
@@ -197,12 +198,19 @@ def novel_depth_smoothness(field_: FrugalNeRFField, render: StepRender, batch: T
     return total
 
 
+def geo_weights(cfg: "FrugalNeRFSettings") -> Tuple[float, float]:
+    """lambda_geo of Eq. 11's two summands (training patches, novel rays): geo_weight for both unless
+    geo_novel_weight sets the novel rays' own."""
+    novel = cfg.geo_weight if cfg.geo_novel_weight is None else cfg.geo_novel_weight
+    return cfg.geo_weight, novel
+
+
 def geometric_adaptation(
     cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews]
 ) -> Optional[AdaptationResult]:
     """Eq. 2-9 on the step's training and novel rays, computed once per step (the metrics and the loss share
-    it); None when lambda_geo is 0 or there are no training views to warp into."""
-    if cfg.geo_weight <= 0 or views is None:
+    it); None when lambda_geo is 0 (both summands) or there are no training views to warp into."""
+    if max(geo_weights(cfg)) <= 0 or views is None:
         return None
     if render.adaptation is None:
         warped = batch.warped

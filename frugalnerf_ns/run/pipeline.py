@@ -14,6 +14,7 @@ from typing import Type
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from frugalnerf_ns.model.objective import geo_weights
 from frugalnerf_ns.run.checkpoints import use_intact_checkpoints_in_eval_tools
 from frugalnerf_ns.errors import one_line_errors
 from frugalnerf_ns.tools.video import teach_ns_render_spiral
@@ -89,7 +90,7 @@ def scene_summary(datamanager, model) -> str:
         occlusion = "off (weight 0)"
     else:
         occlusion = "on" if model.occlusion_active else "off (not an object scene)"
-    if cfg.geo_weight <= 0:
+    if max(geo_weights(cfg)) <= 0:
         geo = "off (weight 0)"
     elif views < 2:
         geo = "novel rays only (one view)" if datamanager.novel_cameras is not None else "off (one view, no novel rays)"
