@@ -110,7 +110,11 @@ def training_losses(
     adaptation = geometric_adaptation(cfg, render, batch, views)
     if adaptation is not None:  # Eq. 10: training patches and novel rays
         train_weight, novel_weight = geo_weights(cfg)
-        terms["geo_loss"] = geo_factor * (train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel)
+        if train_weight == novel_weight:  # one weight (the paper): the same float operations as before the split
+            geo = train_weight * (adaptation.loss_train + adaptation.loss_novel)
+        else:
+            geo = train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel
+        terms["geo_loss"] = geo_factor * geo
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
         sparse = sum(losses.inverse_depth_loss(d[batch.sparse], batch.sparse_depth.to(device)) for d in render.metric_depths)
         terms["sparse_depth"] = cfg.sparse_depth_weight * decay * sparse
