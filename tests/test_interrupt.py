@@ -57,7 +57,10 @@ def saved_steps(out: Path) -> List[int]:
     return sorted(step for step, _ in checkpoints_newest_first(folder)) if folder.is_dir() else []
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+# SIGTERM goes through the same handler as Ctrl-C: its run (~25 s, a second ns-train process) is left to CI's
+# end-to-end pass.
+@pytest.mark.parametrize("signum", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.e2e)],
+                         ids=["ctrl-c", "sigterm"])
 def test_a_stop_signal_saves_the_steps_done_and_exits_non_zero(procedural_scene, tmp_path, signum):
     proc = start_training(procedural_scene, tmp_path)
     wait_for_step(proc, 20)
