@@ -136,7 +136,8 @@ class FrugalNeRFSettings(ModelConfig):
     """lambda_geo of the novel-view rays' term (Eq. 11's second summand) where it differs from the training
     patches' (geo_weight); None: geo_weight for both, as the paper. Not a paper setting: the paper credits the novel
     rays' term with suppressing floaters where no training view looks (Sec. 3.5, "Novel View Regularizations"); at
-    the CPU preset the two summands act on different scenes (docs/benchmarks.md, "The other split")."""
+    the CPU preset the two summands act on different scenes, and frugalnerf-cpu weighs the novel rays' 0.01 against
+    the training patches' 0.1 (docs/benchmarks.md, "The other split")."""
     geo_weight_decay: float = 1.0
     """lambda_geo at the last step over lambda_geo at the first, falling geometrically with the step as the
     loss_weight_decay weights do; 1 keeps it constant (the paper and the reference code). Not a paper setting:
