@@ -139,7 +139,9 @@ def test_gate_command_records_a_baseline_then_passes_and_fails_on_a_regression(t
     assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out3)]) == 1
     assert "FAILED on b-2v" in capsys.readouterr().out
 
-    # Recording one scene later, at another commit, keeps the other scene's entry; the file names both commits.
+    # Recording one scene later, at another commit, keeps the other scene's entry; the file names both commits,
+    # and the comment lines someone wrote under the header survive (once, the header itself not doubled).
+    baseline.write_text(gate.BASELINE_HEADER + "# scene b trained by hand at c0ffee1\n" + yaml.safe_dump(recorded))
     out4 = tmp_path / "out4"
     _fill(out4, gate_file, {("a-2v", 1): 17.3}, commit="beef002")
     assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out4), "--scenes", "a", "--record"]) == 0
@@ -147,6 +149,9 @@ def test_gate_command_records_a_baseline_then_passes_and_fails_on_a_regression(t
     assert both["commit"] == "beef002+c0ffee1"
     assert both["scenes"]["a-2v"]["commit"] == "beef002" and both["scenes"]["a-2v"]["mean"]["psnr"] == pytest.approx(17.3)
     assert both["scenes"]["b-2v"] == recorded["scenes"]["b-2v"]
+    text = baseline.read_text()
+    assert text.startswith(gate.BASELINE_HEADER + "# scene b trained by hand at c0ffee1\n")
+    assert text.count("# Quality gate baseline") == 1
 
 
 def test_gate_command_refuses_bad_files_in_one_line(tmp_path, capsys):

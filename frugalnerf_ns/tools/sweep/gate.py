@@ -4,7 +4,8 @@ mean over its seeds with the recorded baseline (``configs/gate_baseline.yaml``) 
 
   frugalnerf-gate                       # every scene; prints a table, exits 1 on a regression
   frugalnerf-gate --scenes horns        # a subset (the verdict covers only these scenes)
-  frugalnerf-gate --record              # write the baseline file from this run (say why in the commit)
+  frugalnerf-gate --record              # write the baseline file from this run (say why in the commit; the
+                                        # comment lines under its header are kept)
   frugalnerf-gate --list                # the runs and whether they are done
 
 Runs go to ``outputs/gate/<commit>`` (``<commit>-dirty-<hash of the diff>`` with uncommitted changes), so the
@@ -238,6 +239,27 @@ def code_version(root: Path = ROOT) -> str:
     return f"{commit}-dirty-{hashlib.sha1(diff.encode()).hexdigest()[:8]}" if diff else commit
 
 
+BASELINE_HEADER = ("# Quality gate baseline: each scene's mean over its seeds, written by `frugalnerf-gate --record`.\n"
+                   "# Update it only in a commit that means to move the numbers, and say why there.\n")
+
+
+def kept_comments(path: Path) -> str:
+    """The comment lines at the top of an existing baseline file, less the header ``--record`` writes itself: what
+    someone wrote there about the runs (which commit trained which entry, why) survives the next recording."""
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        return ""
+    own = set(BASELINE_HEADER.splitlines())
+    kept = []
+    for line in lines:
+        if not line.startswith("#"):
+            break
+        if line not in own:
+            kept.append(line + "\n")
+    return "".join(kept)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="frugalnerf-gate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -315,9 +337,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                               for spec in group if spec.key in records}))
                       for label, group in specs.items()}
         document = baseline_document(scenes, summaries, trained_at, baseline)
-        header = ("# Quality gate baseline: each scene's mean over its seeds, written by `frugalnerf-gate --record`.\n"
-                  "# Update it only in a commit that means to move the numbers, and say why there.\n")
-        args.baseline.write_text(header + yaml.safe_dump(document, sort_keys=False))
+        args.baseline.write_text(BASELINE_HEADER + kept_comments(args.baseline) + yaml.safe_dump(document, sort_keys=False))
         print(f"\nfrugalnerf-gate: recorded the baseline of {document['commit']} in {args.baseline}")
         return 0
     failed = [label for label, reasons in failures.items() if reasons]
