@@ -172,6 +172,37 @@ def test_dtu_test_split_carries_eval_masks_and_train_split_does_not(tmp_path):
     assert [p.name for p in test.metadata["eval_mask_filenames"]] == ["000.png", "008.png"]
 
 
+def test_an_llff_split_that_is_not_forward_facing_is_modelled_in_a_box_around_its_focus(tmp_path):
+    """NDC only for forward-facing splits: a split from across the fixture's 80-degree arc gets a metric box
+    centred where the cameras look, holding them, and a far background; --ndc True keeps NDC; a forward-facing
+    split keeps NDC, and with --ndc False the baselines' box around the frusta (no far background)."""
+    from frugalnerf_ns.geometry.scene_analysis import classify_camera_layout
+
+    fx.write_llff(tmp_path / "sweep", forward_facing=False)
+
+    def parse(train_views, split="train", **options):
+        return LLFFDataParserConfig(data=tmp_path / "sweep", downscale_factor=2, train_views=train_views,
+                                    test_views=(2, 6), **options).setup().get_dataparser_outputs(split)
+
+    wide = parse((0, 4, 9))
+    assert "ndc" not in wide.metadata and wide.metadata["far_background"] is True
+    box, centres = wide.scene_box.aabb, wide.cameras.camera_to_worlds[:, :3, 3]
+    focus = classify_camera_layout(wide.cameras.camera_to_worlds).focus
+    assert torch.allclose((box[0] + box[1]) / 2, focus, atol=1e-4)
+    sides = box[1] - box[0]
+    assert torch.allclose(sides, sides[:1].expand(3)) and ((centres > box[0]) & (centres < box[1])).all()
+    # ... not out to the far bound (12 here, 16 after scaling): the box's side is ~2.4 camera distances.
+    assert float(sides[0]) < 2.5 * float((centres - focus).norm(dim=-1).max())
+    test = parse((0, 4, 9), split="test")
+    assert torch.equal(test.scene_box.aabb, box) and test.metadata["far_background"] is True
+    assert "ndc" in parse((0, 4, 9), ndc=True).metadata
+    narrow = parse((0, 1))
+    assert "ndc" in narrow.metadata and "far_background" not in narrow.metadata
+    frusta = parse((0, 1), ndc=False)
+    assert "ndc" not in frusta.metadata and "far_background" not in frusta.metadata
+    assert float((frusta.scene_box.aabb[1] - frusta.scene_box.aabb[0]).max()) > 10.0  # out to the far bound
+
+
 def test_llff_ndc_metadata_and_box(tmp_path):
     fx.write_llff(tmp_path / "llff")
     outputs = LLFFDataParserConfig(data=tmp_path / "llff", downscale_factor=2).setup().get_dataparser_outputs("train")

@@ -161,3 +161,17 @@ def test_uninformative_views_are_named():
     assert "b.png and c.png were taken from the same position" in notes[1]
     c2w[2, 0, 3] = 1.0
     assert uninformative_view_notes(torch.rand(3, 8, 8, 3), c2w, ["a", "b", "c"]) == []
+
+
+def test_the_focus_box_is_a_cube_on_the_focus_that_holds_every_training_camera():
+    from frugalnerf_ns.geometry.scene_analysis import FOCUS_BOX_SCALE, focus_box
+
+    focus = torch.tensor([0.5, -1.0, 2.0])
+    centres = focus + torch.tensor([[3.0, 0.0, 0.0], [0.0, 0.0, -4.0], [2.0, 1.0, 2.0]])
+    c2w = torch.zeros(3, 3, 4)
+    c2w[:, :3, :3] = torch.eye(3)
+    c2w[:, :3, 3] = centres
+    box = focus_box(c2w, focus)
+    assert torch.allclose((box[0] + box[1]) / 2, focus)
+    assert torch.allclose(box[1] - box[0], torch.full((3,), 2 * FOCUS_BOX_SCALE * 4.0))  # the farthest camera: 4
+    assert ((centres > box[0]) & (centres < box[1])).all()

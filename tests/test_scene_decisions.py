@@ -54,6 +54,14 @@ def test_the_start_up_summary_names_each_decision_and_its_override(procedural_sc
     in_ndc = model_for(auto)
     in_ndc.ndc = ndc
     assert "space: NDC (the data's near/far bounds), although the split is not forward-facing" in scene_summary(auto, in_ndc)
+    # A box holding only the near part of the scene says what lies beyond it, and how to turn that off.
+    from frugalnerf_ns.field.far_background import FarBackground
+
+    with_far = model_for(auto)
+    with_far.far_background = FarBackground((8, 16))
+    assert "around the training cameras' focus; beyond it a learned far background (8x16 colours by direction; " \
+        "--pipeline.model.far-background False" in scene_summary(auto, with_far)
+    assert "far background" not in detected
     forward = manager_for(procedural_scene, scene_type="forward-facing", sparse_cache_dir=tmp_path)
     forward_model = model_for(forward)
     forward_model.ndc = ndc

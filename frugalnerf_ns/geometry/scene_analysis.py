@@ -145,6 +145,24 @@ def classify_camera_layout(
     return CameraLayout(kind, spread, coverage, focus.float())
 
 
+FOCUS_BOX_SCALE = 1.2
+"""Half the side of ``focus_box`` in training-camera distances from the focus point: the cameras stand inside
+the box (a ray starts in it), with a fifth of their distance to spare behind the farthest of them."""
+
+
+def focus_box(
+    camera_to_worlds: Float[Tensor, "views 3 4"], focus: Float[Tensor, "3"], scale: float = FOCUS_BOX_SCALE
+) -> Float[Tensor, "2 3"]:
+    """A cube centred on ``focus`` whose half side is ``scale`` times the largest distance from a training
+    camera to it: the bounded part of a scene whose cameras converge on something (an object on a table in a
+    room). A box that runs to the data's far bound (~100x the near one on a phone capture) would spend the
+    grid on the room and leave the object a few voxels wide; beyond this one the scene is a far background."""
+    distance = float((camera_to_worlds[:, :3, 3].double() - focus.double()).norm(dim=-1).max())
+    half = scale * max(distance, 1e-6)
+    centre = focus.double()
+    return torch.stack([centre - half, centre + half]).float()
+
+
 def has_plain_background(images: Float[Tensor, "views height width 3"], tolerance: float = 0.05, fraction: float = 0.9) -> bool:
     """True when at least ``fraction`` of every image's border pixels are one colour (within ``tolerance``
     of their median): the black or white backdrop of an object capture (DTU, synthetic objects)."""

@@ -114,6 +114,13 @@ class FrugalNeRFSettings(ModelConfig):
     config.yml."""
     background: Background = "random_white"
     """Training background: white or black at random per batch (reference code), or fixed."""
+    far_background: bool = True
+    """Where the dataparser's box holds only the near part of an unbounded scene (an LLFF-layout capture whose
+    cameras converge on an object in a room; metadata ``far_background``), learn a colour per viewing direction
+    for the rays leaving it instead of ``background``. Other scenes never have one."""
+    far_background_resolution: Tuple[int, int] = (32, 64)
+    """Rows and columns (latitude x longitude) of the far background's map; coarse, so that it holds the far
+    room's broad colours and not the object's detail."""
     full_scale_color_weight: float = 1.0
     """Eq. 1 weight of the full-resolution colour loss."""
     lower_scale_color_weight: float = 10.0

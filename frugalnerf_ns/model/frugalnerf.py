@@ -27,6 +27,7 @@ from torch.profiler import record_function
 
 from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
+from frugalnerf_ns.field.far_background import FarBackground
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
     ScaleFractionHistory,
@@ -91,8 +92,14 @@ class FrugalNeRFModel(Model):
         self.upsample_voxels = log_linear_voxel_counts(
             self.config.initial_voxels, self.final_voxels, len(self.config.upsample_at)
         )
+        metadata = self.kwargs.get("metadata") or {}
         # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
-        self.ndc: Optional[Dict[str, float]] = (self.kwargs.get("metadata") or {}).get("ndc")
+        self.ndc: Optional[Dict[str, float]] = metadata.get("ndc")
+        # A box that holds only the near part of the scene (LLFF layout, cameras converging on an object)
+        # comes with a far background: a colour per direction for the rays that leave it.
+        self.far_background: Optional[FarBackground] = None
+        if self.config.far_background and metadata.get("far_background"):
+            self.far_background = FarBackground(tuple(self.config.far_background_resolution))
         # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
         # the module tree and out of every checkpoint.
         self.scorer = ImageScorer()
@@ -175,7 +182,9 @@ class FrugalNeRFModel(Model):
         return resolution_for_voxels(num_voxels, box, self._span_stride(), self.config.scale_spanning_rounding)
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
-        return {"encodings": self.field.grid_parameters(), "fields": self.field.network_parameters()}
+        # The far background is a texture like the grid's planes: it learns at their rate.
+        far = [] if self.far_background is None else list(self.far_background.parameters())
+        return {"encodings": self.field.grid_parameters() + far, "fields": self.field.network_parameters()}
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         return training_callbacks(self, training_callback_attributes)
@@ -201,7 +210,10 @@ class FrugalNeRFModel(Model):
         if self.ndc is not None:
             ndc_rays = rays_to_ndc(origins, directions, **self.ndc)
             origins, directions = ndc_rays.origins, ndc_rays.directions
-        background = self._background(origins.device)
+        if self.far_background is not None:
+            background = self.far_background(world_directions)  # per ray, from the world direction
+        else:
+            background = self._background(origins.device)
         # All scales march the same box: intersect once.
         segments = intersect_aabb(origins, directions, self.field.aabb, self.config.near_plane)
         cfg = self.config
@@ -275,7 +287,7 @@ class FrugalNeRFModel(Model):
         metrics: Dict[str, Tensor] = {}
         if isinstance(batch, TrainBatch):
             step: StepRender = outputs["step"]
-            target = objective.target_rgb(batch.image.to(self.device), step.background)
+            target = objective.target_rgb(batch.image.to(self.device), objective.train_rows(step.background, batch))
             for scale, render in enumerate(step.scales):
                 metrics[f"psnr{scale_suffix(scale)}"] = capped_psnr(render.rgb[batch.train].detach(), target)
             adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views)

@@ -42,6 +42,11 @@ def target_rgb(image: Tensor, background: Tensor) -> Float[Tensor, "rays 3"]:
     return image[..., :3]
 
 
+def train_rows(background: Tensor, batch: TrainBatch) -> Tensor:
+    """The step's background for its training rays: the one colour, or the training rows of a per-ray one."""
+    return background[batch.train] if background.dim() == 2 else background
+
+
 def on_background(
     rgb: Float[Tensor, "rays 3"], accumulation: Float[Tensor, "rays 1"], rendered_on: Tensor, wanted: Tensor
 ) -> Float[Tensor, "rays 3"]:
@@ -101,7 +106,7 @@ def training_losses(
     """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
     lambda_geo (its schedule, geo_weight_decay)."""
     device = render.background.device
-    target = target_rgb(batch.image.to(device), render.background)
+    target = target_rgb(batch.image.to(device), train_rows(render.background, batch))
     predictions = [scale.rgb[batch.train] for scale in render.scales]
     terms = {"rgb_loss": losses.multiscale_color_loss(predictions, target, scale_color_weights(cfg, len(predictions), decay))}
     with record_function("regularizers"):
@@ -224,7 +229,11 @@ def geometric_adaptation(
         # they are compared with are composited on white, so the render is too: on this step's random
         # background (black half the time) every ray with accumulation < 1 would count as a large error.
         full = render.scales[0]
-        novel_rgb = on_background(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
+        if render.background.dim() == 2:
+            # A learned far background (one colour per ray) is the scene's own colour there: nothing to swap.
+            novel_rgb = full.rgb[batch.novel]
+        else:
+            novel_rgb = on_background(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
         source = torch.cat([target, novel_rgb.detach()])
         with record_function("geometric_adaptation"):
             render.adaptation = cross_scale_geometric_adaptation(

@@ -48,11 +48,12 @@ def scene_summary(datamanager, model) -> str:
     detected = "detected" if dm.scene_type == "auto" else "set by --pipeline.datamanager.scene-type"
     views = len(datamanager.warp_images)
     if model.ndc is not None and datamanager.scene_type != "forward-facing":
-        # The LLFF layout is modelled in NDC whatever the split; say so rather than call the split forward-facing.
+        # NDC chosen for a split that is not forward-facing (--ndc True, or the photos parser's wider limit):
+        # say so rather than call the split forward-facing.
         space = (
             "NDC (the data's near/far bounds), although the split is not forward-facing: NDC looks along the "
-            "training cameras' mean direction, and views far from it render poorly (no metric space with a far "
-            "background yet; docs/captures.md)"
+            "training cameras' mean direction, and views far from it render poorly (the LLFF parser without "
+            "--ndc models such a split in a box around the focus with a far background; docs/captures.md)"
         )
     elif model.ndc is not None:
         space = "NDC (forward-facing, the data's near/far bounds)"
@@ -69,6 +70,12 @@ def scene_summary(datamanager, model) -> str:
             )
         elif getattr(dm, "fit_scene_box", False):
             space += " (the training views see all of the dataparser's box)"
+        if getattr(model, "far_background", None) is not None:
+            rows, cols = model.far_background.texture.shape[-2:]
+            space += (
+                f" around the training cameras' focus; beyond it a learned far background ({rows}x{cols} colours by "
+                "direction; --pipeline.model.far-background False: the fixed background)"
+            )
     side = round(model.final_voxels ** (1 / 3))
     pixels = (model.kwargs.get("metadata") or {}).get("frugalnerf_scene", {}).get("num_train_pixels", 0)
     grid = f"{side}^3 final grid " + (

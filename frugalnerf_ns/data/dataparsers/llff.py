@@ -1,4 +1,5 @@
-"""LLFF forward-facing scenes (``poses_bounds.npy`` + ``images_N/``), modelled in NDC as the paper does."""
+"""LLFF layout (``poses_bounds.npy`` + ``images_N/``): forward-facing splits in NDC as the paper does; splits
+whose cameras converge on something from wider apart (a phone circling a table) in a metric box around it."""
 
 from __future__ import annotations
 
@@ -15,7 +16,12 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
-from frugalnerf_ns.geometry.scene_analysis import FORWARD_FACING_MAX_SPREAD, largest_angle_to_mean_direction
+from frugalnerf_ns.geometry.scene_analysis import (
+    FORWARD_FACING_MAX_SPREAD,
+    classify_camera_layout,
+    focus_box,
+    largest_angle_to_mean_direction,
+)
 from frugalnerf_ns.data.downscaled_images import downscaled_all, photo_size_and_factor
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, list_images, split_indices
@@ -37,8 +43,11 @@ class LLFFDataParserConfig(FewShotDataParserConfig):
     """Read images_<factor>/ (1: images/); made once from images/ into the scene's cache where only the
     full-size photos exist. Default: images_8/ if present (the paper uses 4; 8 suits a CPU), else images/ at the
     smallest factor that brings the long side to 640 px or fewer."""
-    ndc: bool = True
-    """Model the scene in normalised device coordinates (forward-facing scenes)."""
+    ndc: Optional[bool] = None
+    """Model the scene in normalised device coordinates. Default: NDC when the training views are
+    forward-facing (the scene analysis' rule: every viewing direction within 13 degrees of their mean), else a
+    metric box around the point they converge on, with a learned far background beyond it. ``False`` on a
+    forward-facing split: a metric box around the training frusta up to the far bound (the baselines' box)."""
     bd_factor: float = 0.75
     """Scale the scene so the nearest bound lands at 1 / bd_factor (NeRF's LLFF loader)."""
 
@@ -73,6 +82,12 @@ class LLFF(DataParser):
                     f"direction (forward-facing: <= {FORWARD_FACING_MAX_SPREAD:.0f}): the frame is the training "
                     "cameras' average camera"
                 )
+        train_c2w = c2w[views.train]
+        layout = classify_camera_layout(torch.from_numpy(train_c2w).float())
+        ndc = self.config.ndc if self.config.ndc is not None else layout.scene_type == "forward-facing"
+        # Not forward-facing: NDC would look along the cameras' mean direction and see the outer views from the
+        # side, and the far bound (~100x the near one on a phone capture) is more than a grid can hold.
+        box = None if ndc or layout.scene_type == "forward-facing" else focus_box(torch.from_numpy(train_c2w), layout.focus)
         indices = split_indices(split, views)
         files = [images[i] for i in indices]
         check_images(files)
@@ -85,8 +100,8 @@ class LLFF(DataParser):
         focal = float(full_focal) * width / float(full_width)
 
         return forward_facing_outputs(
-            files, c2w[indices], c2w[views.train], (focal, focal, width / 2.0, height / 2.0),
-            (width, height), (float(bounds.min()), float(bounds.max())), self.config.ndc, float(scale),
+            files, c2w[indices], train_c2w, (focal, focal, width / 2.0, height / 2.0),
+            (width, height), (float(bounds.min()), float(bounds.max())), ndc, float(scale), box,
         )
 
 
@@ -119,10 +134,13 @@ class LLFF(DataParser):
 
 
 def forward_facing_outputs(
-    images, c2w: np.ndarray, train_c2w: np.ndarray, intrinsics, size, near_far, ndc: bool, scale: float
+    images, c2w: np.ndarray, train_c2w: np.ndarray, intrinsics, size, near_far, ndc: bool, scale: float,
+    box: Optional[torch.Tensor] = None,
 ) -> DataparserOutputs:
-    """Outputs of a forward-facing scene (LLFF, RealEstate): NDC box and NDC parameters, or a metric box
-    around the training frusta. ``c2w`` are the split's cameras, already recentred and scaled."""
+    """Outputs of an LLFF-like scene (LLFF, RealEstate, photos): NDC box and NDC parameters, or a metric box:
+    ``box`` (the part of an unbounded scene the grid holds; beyond it the model learns a far background,
+    metadata ``far_background``) or, without it, the box around the training frusta up to the far bound.
+    ``c2w`` are the split's cameras, already recentred and scaled."""
     fx, fy, cx, cy = intrinsics
     width, height = size
     cameras = Cameras(
@@ -140,6 +158,9 @@ def forward_facing_outputs(
         scene_box = SceneBox(aabb=torch.tensor(NDC_AABB))
         # NDC assumes one pinhole with the principal point at the centre (as NeRF and TensoRF do).
         metadata["ndc"] = {"focal": float(fx), "width": float(width), "height": float(height), "near": 1.0}
+    elif box is not None:
+        scene_box = SceneBox(aabb=box.float())
+        metadata["far_background"] = True
     else:
         scene_box = SceneBox(aabb=frustum_box(train_c2w, float(fx), width, height, near_far[1]))
     return DataparserOutputs(
