@@ -193,6 +193,12 @@ def test_an_llff_split_that_is_not_forward_facing_is_modelled_in_a_box_around_it
     assert torch.allclose(sides, sides[:1].expand(3)) and ((centres > box[0]) & (centres < box[1])).all()
     # ... not out to the far bound (12 here, 16 after scaling): the box's side is ~2.4 camera distances.
     assert float(sides[0]) < 2.5 * float((centres - focus).norm(dim=-1).max())
+    far = float((centres - focus).norm(dim=-1).max())
+    assert abs(float(sides[0]) - 2 * 1.2 * far) < 1e-3 * far
+    smaller = parse((0, 4, 9), focus_box_scale=0.5).scene_box.aabb
+    assert abs(float(smaller[1, 0] - smaller[0, 0]) - far) < 1e-3 * far
+    with pytest.raises(DataError, match="--focus-box-scale must be positive"):
+        parse((0, 4, 9), focus_box_scale=0.0)
     test = parse((0, 4, 9), split="test")
     assert torch.equal(test.scene_box.aabb, box) and test.metadata["far_background"] is True
     assert "ndc" in parse((0, 4, 9), ndc=True).metadata

@@ -17,6 +17,7 @@ from PIL import Image
 
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
 from frugalnerf_ns.geometry.scene_analysis import (
+    FOCUS_BOX_SCALE,
     FORWARD_FACING_MAX_SPREAD,
     classify_camera_layout,
     focus_box,
@@ -50,6 +51,9 @@ class LLFFDataParserConfig(FewShotDataParserConfig):
     forward-facing split: a metric box around the training frusta up to the far bound (the baselines' box)."""
     bd_factor: float = 0.75
     """Scale the scene so the nearest bound lands at 1 / bd_factor (NeRF's LLFF loader)."""
+    focus_box_scale: float = FOCUS_BOX_SCALE
+    """Metric box of a split that is not forward-facing: a cube on the training cameras' focus whose half side is
+    this many times the farthest training camera's distance to it (above 1: the cameras inside it)."""
 
 
 class LLFF(DataParser):
@@ -59,6 +63,8 @@ class LLFF(DataParser):
         data = Path(self.config.data)
         poses, bounds = load_poses_bounds(data / "poses_bounds.npy")
         factor, images, make_copies = self._images(data, poses.shape[0], split)
+        if self.config.focus_box_scale <= 0:
+            raise DataError(f"--focus-box-scale must be positive (got {self.config.focus_box_scale})")
 
         c2w = llff_to_opengl(poses[:, :, :4])
         scale = 1.0 / (bounds.min() * self.config.bd_factor)
@@ -87,7 +93,9 @@ class LLFF(DataParser):
         ndc = self.config.ndc if self.config.ndc is not None else layout.scene_type == "forward-facing"
         # Not forward-facing: NDC would look along the cameras' mean direction and see the outer views from the
         # side, and the far bound (~100x the near one on a phone capture) is more than a grid can hold.
-        box = None if ndc or layout.scene_type == "forward-facing" else focus_box(torch.from_numpy(train_c2w), layout.focus)
+        box = None if ndc or layout.scene_type == "forward-facing" else focus_box(
+            torch.from_numpy(train_c2w), layout.focus, self.config.focus_box_scale
+        )
         indices = split_indices(split, views)
         files = [images[i] for i in indices]
         check_images(files)
