@@ -217,6 +217,27 @@ def test_points_outside_the_scene_box_are_dropped_with_their_observations():
     assert torch.equal(kept.pixels, sparse.pixels[[0, 1, 4, 5]])
 
 
+def test_the_sparse_points_line_counts_the_points_the_box_left_out():
+    from frugalnerf_ns.data.sparse_points import usable_points
+
+    points = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.5, -0.5, 0.9]], dtype=torch.float64)
+    sparse = SparseDepth(
+        points, torch.tensor([0, 1, 0, 1, 0, 1]), torch.tensor([0, 0, 1, 1, 2, 2]),
+        torch.arange(12, dtype=torch.float64).reshape(6, 2), torch.arange(1, 7, dtype=torch.float64),
+    )
+    box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    lines = []
+    kept = usable_points(sparse, box, 2, lines.append, "triangulating")
+    assert kept is not None and kept.num_points == 2
+    assert lines == ["frugalnerf: 2 sparse points from triangulating supervise depth (L_sd) (1 more lie outside the scene box)."]
+    lines.clear()
+    assert usable_points(sparse, box, 3, lines.append, "triangulating") is None
+    assert "found 2 points (1 more lie outside the scene box)" in lines[0] and "without the sparse depth loss" in lines[0]
+    lines.clear()
+    assert usable_points(sparse, None, 3, lines.append, "triangulating").num_points == 3  # NDC: no box, no count
+    assert "outside" not in lines[0]
+
+
 @pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
 def test_torch_matching_agrees_with_pycolmaps_matcher_on_fern():
     """The same rule as COLMAP's SIFT matcher (ratio 0.8, 0.7 rad, cross-check): nearly the same matches."""

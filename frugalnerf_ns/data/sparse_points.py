@@ -406,14 +406,18 @@ def usable_points(
 ) -> Optional[SparseDepth]:
     """The points inside a metric ``box`` (None: NDC, no cut), or None, said, when fewer than ``min_points``
     remain (training goes on without L_sd). ``source`` says where they came from."""
+    found = sparse.num_points
     if box is not None:
         sparse = points_inside_box(sparse, box)
+    # Points beyond a metric box (a room around a focus box, a background behind an object) cannot be
+    # rendered there: the count says whether the box or the matching is what left too few.
+    outside = "" if found == sparse.num_points else f" ({found - sparse.num_points} more lie outside the scene box)"
     if sparse.num_points < min_points:
         say(
-            f"[bold yellow]frugalnerf: {source} found {sparse.num_points} points "
+            f"[bold yellow]frugalnerf: {source} found {sparse.num_points} points{outside} "
             f"(fewer than --pipeline.datamanager.min-sparse-points {min_points}): training goes on without the "
             "sparse depth loss."
         )
         return None
-    say(f"frugalnerf: {sparse.num_points} sparse points from {source} supervise depth (L_sd).")
+    say(f"frugalnerf: {sparse.num_points} sparse points from {source} supervise depth (L_sd){outside}.")
     return sparse
