@@ -59,8 +59,11 @@ def test_the_start_up_summary_names_each_decision_and_its_override(procedural_sc
 
     with_far = model_for(auto)
     with_far.far_background = FarBackground((8, 16))
-    assert "around the training cameras' focus; beyond it a learned far background (8x16 colours by direction; " \
+    assert "around the training cameras' focus; beyond it a learned far background (8x16 colours by direction, infinitely far; " \
         "--pipeline.model.far-background False" in scene_summary(auto, with_far)
+    with_far.far_background = FarBackground((8, 16), torch.zeros(3), 7.5)
+    assert "(8x16 colours by direction, on a sphere of radius 7.5, where the sparse points beyond the box lie; " \
+        in scene_summary(auto, with_far)
     assert "far background" not in detected
     forward = manager_for(procedural_scene, scene_type="forward-facing", sparse_cache_dir=tmp_path)
     forward_model = model_for(forward)

@@ -78,6 +78,12 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     """With fewer triangulated points training goes on without L_sd (and says so once)."""
     triangulation: TriangulationOptions = field(default_factory=TriangulationOptions)
     """Which triangulated points are kept."""
+    far_background_shell: bool = True
+    """Where the dataparser models only the near part of the scene in a box with a far background (an LLFF split
+    that is not forward-facing): place that background on a sphere at the distance of the sparse points beyond
+    the box (``far_background.far_shell``) and keep those points for L_sd, so the rays to them cross the box
+    empty. False: the background stays infinitely far away and only the points inside the box are used.
+    --pipeline.model.far-background False turns this off too."""
     sparse_cache_dir: Optional[Path] = None
     """Folder of the cached points (default: frugalnerf_cache inside the scene's data folder, or this user's cache
     folder, $XDG_CACHE_HOME/frugalnerf, when the data folder cannot be written). The cache is
@@ -176,12 +182,17 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         # Only training needs the points (eval and the viewer set the datamanager up in another test_mode).
         if self.test_mode == "val" and self.config.sparse_depth and self.config.num_sparse_rays_per_batch > 0:
             if len(centers) >= 2:
-                self.sparse = training_view_points(
+                far_shell_wanted = getattr(self.config, "far_background_shell", False) and bool(
+                    (self.train_dataparser_outputs.metadata or {}).get("far_background")
+                )
+                self.sparse, far_shell = training_view_points(
                     self.train_dataparser_outputs, cameras, self.warp_images, self.warp_intrinsics,
                     # Configs saved before this option existed load without it (nerfstudio rebuilds them from YAML).
                     getattr(self.config, "triangulation", None) or TriangulationOptions(),
-                    self.config.min_sparse_points, self._cache_path("sparse_depth"), self.device,
+                    self.config.min_sparse_points, self._cache_path("sparse_depth"), self.device, far_shell_wanted,
                 )
+                if far_shell is not None:
+                    self.train_dataset.metadata["frugalnerf_scene"]["far_shell"] = far_shell
         self.fitted_box = None  # the dataparser's box when a fitted one replaced it
         if getattr(self.config, "fit_scene_box", False):
             box = self.train_dataset.scene_box.aabb.float()

@@ -373,21 +373,17 @@ def load_sparse_depth(path: Path, key: str) -> Tuple[Optional[SparseDepth], str]
     return sparse, ""
 
 
-def training_sparse_depth(
+def all_training_sparse_depth(
     images: Sequence[np.ndarray],
     camera_to_worlds: Float[Tensor, "views 3 4"],
     intrinsics: Float[Tensor, "views 4"],
     options: TriangulationOptions,
     bounds: Optional[Tuple[float, float]],
     cache_path: Path,
-    box: Optional[Float[Tensor, "2 3"]],
-    min_points: int,
     say: Callable[[str], None],
-) -> Optional[SparseDepth]:
-    """The sparse depth a training run uses: the cached points when the cache matches these views and options,
-    else triangulated (and cached; a cache that cannot be written is said and skipped). With a metric ``box``
-    (object scenes), points outside it are dropped as background mismatches. None, said, when fewer than
-    ``min_points`` remain: training goes on without L_sd."""
+) -> SparseDepth:
+    """Every point triangulated between the training views (no box, no minimum): from the cache when it matches
+    these views and options, else triangulated and cached."""
     key = cache_key(images, camera_to_worlds, intrinsics, options, bounds)
     sparse, why = load_sparse_depth(cache_path, key)
     if sparse is None:
@@ -398,7 +394,7 @@ def training_sparse_depth(
             save_sparse_depth(cache_path, sparse, key)
         except OSError as err:
             say(f"frugalnerf: could not cache sparse points in {cache_path} ({err}); they stay in memory.")
-    return usable_points(sparse, box, min_points, say, "triangulating the training views")
+    return sparse
 
 
 def usable_points(

@@ -6,7 +6,7 @@ tested and reused without a datamanager."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -17,11 +17,12 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from frugalnerf_ns.data.mono_depth import load_or_predict
-from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, training_sparse_depth, usable_points
+from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, all_training_sparse_depth, usable_points
 from frugalnerf_ns.geometry.scene_analysis import (
     CameraLayout,
     SceneType,
     classify_camera_layout,
+    far_shell,
     fit_scene_box,
     has_plain_background,
     seen_region_box,
@@ -65,28 +66,42 @@ def fitted_scene_box(
 def training_view_points(
     outputs: DataparserOutputs, cameras: Cameras, rgb: Float[Tensor, "views height width 3"],
     intrinsics: Float[Tensor, "views 4"], options: TriangulationOptions, min_points: int, cache: Path, device,
-) -> Optional[SparseDepth]:
-    """Triangulated points of the training views on ``device``, from the cache when it matches; None when fewer
-    than ``min_points``."""
+    far_shell_wanted: bool = False,
+) -> Tuple[Optional[SparseDepth], Optional[Tuple[List[float], float]]]:
+    """Triangulated points of the training views on ``device``, from the cache when it matches (None when fewer
+    than ``min_points``), and the far background's sphere ((centre, radius), or None).
+
+    With ``far_shell_wanted`` (a box holding only the near part of the scene, with a far background) the points
+    beyond the box place that sphere (``far_shell``) and are kept: L_sd then asks their rays to cross the box
+    empty. Otherwise a metric box drops them as background mismatches."""
     metadata = outputs.metadata or {}
+    box = outputs.scene_box.aabb if metadata.get("ndc") is None else None  # NDC boxes are not in world units
     estimated = metadata.get("sparse_depth")
     if estimated is not None:
         # Photos without cameras: the points their cameras were estimated with (no second triangulation).
-        box = outputs.scene_box.aabb if metadata.get("ndc") is None else None
         sparse = usable_points(estimated, box, min_points, CONSOLE.print, "estimating the photos' cameras")
-        return None if sparse is None else SparseDepth(*(t.float().to(device) if t.is_floating_point() else t.to(device) for t in sparse))
+        return (None if sparse is None else _on(sparse, device)), None
     images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in rgb]
     near_far = metadata.get("near_far")
-    sparse = training_sparse_depth(
-        images, cameras.camera_to_worlds.double(), intrinsics.double().cpu(),
-        options,
-        None if near_far is None else (float(near_far[0]), float(near_far[1])), cache,
-        # A metric box (object scenes) drops background mismatches; NDC boxes are not in world units.
-        outputs.scene_box.aabb if metadata.get("ndc") is None else None,
-        min_points, CONSOLE.print,
+    every = all_training_sparse_depth(
+        images, cameras.camera_to_worlds.double(), intrinsics.double().cpu(), options,
+        None if near_far is None else (float(near_far[0]), float(near_far[1])), cache, CONSOLE.print,
     )
-    if sparse is None:
-        return None
+    shell = far_shell(every.points, box) if far_shell_wanted and box is not None else None
+    if shell is not None:
+        centre, radius = shell
+        CONSOLE.print(
+            f"frugalnerf: the far background lies on a sphere of radius {radius:.3g} around the box's centre (the "
+            "median distance of the sparse points beyond the box; --pipeline.datamanager.far-background-shell False: "
+            "infinitely far)."
+        )
+        sparse = usable_points(every, None, min_points, CONSOLE.print, "triangulating the training views (in and beyond the box)")
+        return (None if sparse is None else _on(sparse, device)), (centre.tolist(), radius)
+    sparse = usable_points(every, box, min_points, CONSOLE.print, "triangulating the training views")
+    return (None if sparse is None else _on(sparse, device)), None
+
+
+def _on(sparse: SparseDepth, device) -> SparseDepth:
     return SparseDepth(*(t.float().to(device) if t.is_floating_point() else t.to(device) for t in sparse))
 
 

@@ -163,6 +163,24 @@ def focus_box(
     return torch.stack([centre - half, centre + half]).float()
 
 
+def far_shell(
+    points: Float[Tensor, "points 3"], box: Float[Tensor, "2 3"], min_points: int = 5
+) -> Optional[Tuple[Float[Tensor, "3"], float]]:
+    """(centre, radius) of the sphere the far background is painted on: centred on ``box``, at the median
+    distance of the triangulated ``points`` that lie beyond the box, never inside the box (at least its half
+    diagonal, so every ray that leaves the box meets the sphere beyond it). None with fewer than ``min_points``
+    points beyond the box: nothing says how far the background is, and it stays infinitely far away."""
+    box = box.double()
+    centre = box.mean(dim=0)
+    points = points.double()
+    beyond = points[~((points >= box[0]) & (points <= box[1])).all(dim=-1)]
+    if len(beyond) < max(1, min_points):
+        return None
+    half_diagonal = float((box[1] - box[0]).norm()) / 2.0
+    radius = max(float((beyond - centre).norm(dim=-1).median()), half_diagonal)
+    return centre.float(), radius
+
+
 def has_plain_background(images: Float[Tensor, "views height width 3"], tolerance: float = 0.05, fraction: float = 0.9) -> bool:
     """True when at least ``fraction`` of every image's border pixels are one colour (within ``tolerance``
     of their median): the black or white backdrop of an object capture (DTU, synthetic objects)."""

@@ -99,7 +99,10 @@ class FrugalNeRFModel(Model):
         # comes with a far background: a colour per direction for the rays that leave it.
         self.far_background: Optional[FarBackground] = None
         if self.config.far_background and metadata.get("far_background"):
-            self.far_background = FarBackground(tuple(self.config.far_background_resolution))
+            # The sphere it lies on, when the datamanager's points beyond the box say how far it is.
+            shell = scene.get("far_shell")
+            centre, radius = (None, 0.0) if shell is None else (torch.as_tensor(shell[0]), float(shell[1]))
+            self.far_background = FarBackground(tuple(self.config.far_background_resolution), centre, radius)
         # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
         # the module tree and out of every checkpoint.
         self.scorer = ImageScorer()
@@ -211,7 +214,7 @@ class FrugalNeRFModel(Model):
             ndc_rays = rays_to_ndc(origins, directions, **self.ndc)
             origins, directions = ndc_rays.origins, ndc_rays.directions
         if self.far_background is not None:
-            background = self.far_background(world_directions)  # per ray, from the world direction
+            background = self.far_background(world_origins, world_directions)  # per ray, where it meets the map
         else:
             background = self._background(origins.device)
         # All scales march the same box: intersect once.
@@ -252,7 +255,8 @@ class FrugalNeRFModel(Model):
                 outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
         if self.training:
             # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
-            outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths)
+            far_depth = None if self.far_background is None else self.far_background.distance(world_origins, world_directions)
+            outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths, far_depth)
         elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
             chosen = pseudo_ground_truth_scale(
                 world_origins, world_directions, torch.stack(metric_depths), outputs["rgb"].reshape(-1, 3),

@@ -93,6 +93,19 @@ def _occlusion_reads_every_color(cfg: "FrugalNeRFSettings", occlusion_active: bo
     return occlusion_active and cfg.occlusion_weight > 0 and cfg.occlusion_background_prior
 
 
+def depth_through_box(render: StepRender, scale: int, rows: slice) -> Tensor:
+    """A scale's metric depth of the rays ``rows`` as L_sd compares it: the field's depth, and where the scene
+    has a far background on a sphere, that sphere's distance behind it in the share the field lets through,
+    acc * depth + (1 - acc) * d_sphere (volume rendering's last sample: the ray ends on the background). A point
+    triangulated beyond the box then asks for a ray that crosses the box empty, which the field's depth alone,
+    ending inside the box, can never give."""
+    depth = render.metric_depths[scale][rows]
+    if render.background_depth is None:
+        return depth
+    accumulation = render.scales[scale].accumulation[rows, 0]
+    return accumulation * depth + (1.0 - accumulation) * render.background_depth[rows]
+
+
 def training_losses(
     cfg: "FrugalNeRFSettings",
     field_: FrugalNeRFField,
@@ -121,7 +134,10 @@ def training_losses(
             geo = train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel
         terms["geo_loss"] = geo_factor * geo
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
-        sparse = sum(losses.inverse_depth_loss(d[batch.sparse], batch.sparse_depth.to(device)) for d in render.metric_depths)
+        sparse = sum(
+            losses.inverse_depth_loss(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
+            for scale in range(len(render.scales))
+        )
         terms["sparse_depth"] = cfg.sparse_depth_weight * decay * sparse
     if cfg.mono_depth_weight > 0 and batch.mono_depth is not None:  # L_d at every scale
         view = batch.indices[:, 0].to(device)

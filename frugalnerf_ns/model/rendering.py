@@ -270,5 +270,8 @@ class StepRender:
     scales: List[ScaleRender]
     metric_depths: List[Float[Tensor, " rays"]]
     """Each scale's depth as metric distance along the world ray (what warping and L_sd use)."""
+    background_depth: Optional[Float[Tensor, " rays"]] = None
+    """Metric distance along each ray to the far background's sphere (None: no sphere); L_sd composites it
+    behind the field's depth (``depth_through_box``)."""
     adaptation: Optional[AdaptationResult] = field(default=None)
     """Cross-scale geometric adaptation of this step, computed once (metrics and losses share it)."""

@@ -29,6 +29,10 @@ class FrugalPipelineConfig(VanillaPipelineConfig):
 
 class FrugalPipeline(VanillaPipeline):
     def __init__(self, config: FrugalPipelineConfig, device: str, *args, **kwargs) -> None:
+        # The far background's sphere is placed by the datamanager's points; a model without a far background
+        # must not get the points beyond the box either (their rays would pull depth to the box's far side).
+        if getattr(config.datamanager, "far_background_shell", False) and not getattr(config.model, "far_background", True):
+            config.datamanager.far_background_shell = False
         # Every nerfstudio command that reads data builds the pipeline: bad data ends it with one line.
         with one_line_errors():
             super().__init__(config, device, *args, **kwargs)
@@ -72,9 +76,13 @@ def scene_summary(datamanager, model) -> str:
             space += " (the training views see all of the dataparser's box)"
         if getattr(model, "far_background", None) is not None:
             rows, cols = model.far_background.texture.shape[-2:]
+            where = (
+                f"on a sphere of radius {float(model.far_background.radius):.3g}, where the sparse points beyond the box lie"
+                if model.far_background.has_shell else "infinitely far"
+            )
             space += (
                 f" around the training cameras' focus; beyond it a learned far background ({rows}x{cols} colours by "
-                "direction; --pipeline.model.far-background False: the fixed background)"
+                f"direction, {where}; --pipeline.model.far-background False: the fixed background)"
             )
     side = round(model.final_voxels ** (1 / 3))
     pixels = (model.kwargs.get("metadata") or {}).get("frugalnerf_scene", {}).get("num_train_pixels", 0)
