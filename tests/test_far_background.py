@@ -132,6 +132,11 @@ def test_training_sends_gradient_to_the_far_background_and_a_checkpoint_restores
     fresh = tiny_model({"far_background": True})
     fresh.load_state_dict(model.state_dict())
     assert torch.equal(fresh.far_background.texture, model.far_background.texture)
+    # The sphere too: eval tools build the model without the datamanager's points, then load the checkpoint.
+    shell = tiny_model({"far_background": True, "frugalnerf_scene": {"far_shell": ([0.5, 0.0, -1.0], 4.0)}})
+    fresh.load_state_dict(shell.state_dict())
+    assert fresh.far_background.has_shell and float(fresh.far_background.radius) == 4.0
+    assert fresh.far_background.centre.tolist() == [0.5, 0.0, -1.0]
 
 
 def test_an_old_checkpoint_without_the_sphere_loads_with_the_background_infinitely_far():
