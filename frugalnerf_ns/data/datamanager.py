@@ -81,7 +81,7 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     far_background_shell: bool = True
     """Where the dataparser models only the near part of the scene in a box with a far background (an LLFF split
     that is not forward-facing): place that background on a sphere at the distance of the sparse points beyond
-    the box (``far_background.far_shell``) and keep those points for L_sd, so the rays to them cross the box
+    the box (``scene_analysis.far_shell``) and keep those points for L_sd, so the rays to them cross the box
     empty. False: the background stays infinitely far away and only the points inside the box are used.
     --pipeline.model.far-background False turns this off too."""
     sparse_cache_dir: Optional[Path] = None

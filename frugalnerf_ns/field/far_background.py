@@ -7,9 +7,9 @@ coarse on purpose (a texel spans ~6 degrees at the default 32 x 64): it can hold
 colours but not the object's detail, so the training views cannot be explained by the background alone.
 
 Seen from infinitely far away, the room has no parallax: cameras a few metres apart see the same colour in
-the same direction, which a room a few metres beyond the box does not do. With a ``radius`` (``far_shell``:
-``scene_analysis.far_shell``: the triangulated points beyond the box say how far the room is) the map is painted on a sphere of that radius
-around the box's centre instead, read where the ray leaves the sphere, and that distance is the depth of what
+the same direction, which a room a few metres beyond the box does not do. With a ``radius``
+(``scene_analysis.far_shell``: the triangulated points beyond the box say how far the room is) the map is
+painted on a sphere of that radius around the box's centre instead, read where the ray leaves the sphere, and that distance is the depth of what
 the ray sees beyond the box (``shell_distance``).
 """
 
@@ -80,11 +80,15 @@ class FarBackground(nn.Module):
             return None
         return shell_distance(origins, directions, self.centre.to(origins), float(self.radius))
 
-    def forward(self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"]) -> Float[Tensor, "rays 3"]:
+    def forward(
+        self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], distance: Optional[Tensor] = None
+    ) -> Float[Tensor, "rays 3"]:
+        """Colour of each ray's background; ``distance`` is ``self.distance`` of these rays when the caller has
+        it already (a training step needs it for L_sd too)."""
         if directions.shape[0] == 0:
             return directions.new_zeros(0, 3)
         if self.has_shell:
-            distance = self.distance(origins, directions)
+            distance = self.distance(origins, directions) if distance is None else distance
             directions = origins + directions * distance[:, None] - self.centre.to(origins)
         grid = direction_to_latlong(directions.to(self.texture.dtype))[None, None]  # [1, 1, rays, 2]
         logits = torch.nn.functional.grid_sample(

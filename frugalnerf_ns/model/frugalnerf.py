@@ -213,8 +213,10 @@ class FrugalNeRFModel(Model):
         if self.ndc is not None:
             ndc_rays = rays_to_ndc(origins, directions, **self.ndc)
             origins, directions = ndc_rays.origins, ndc_rays.directions
+        far_depth = None  # where each ray meets the far background's sphere (None: no sphere)
         if self.far_background is not None:
-            background = self.far_background(world_origins, world_directions)  # per ray, where it meets the map
+            far_depth = self.far_background.distance(world_origins, world_directions)
+            background = self.far_background(world_origins, world_directions, far_depth)  # per ray, where it meets the map
         else:
             background = self._background(origins.device)
         # All scales march the same box: intersect once.
@@ -255,7 +257,6 @@ class FrugalNeRFModel(Model):
                 outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
         if self.training:
             # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
-            far_depth = None if self.far_background is None else self.far_background.distance(world_origins, world_directions)
             outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths, far_depth)
         elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
             chosen = pseudo_ground_truth_scale(
