@@ -15,7 +15,7 @@ from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_lay
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.photo_poses import focal_from_35mm
 from frugalnerf_ns.geometry.reprojection import project_to_camera
-from tests.photo_scene import TRUE, render
+from tests.photo_scene import TRUE, camera, render
 from tests.training_helpers import ns_train_main, preset_config, train
 
 EXIF_ORIENTATION = 0x0112
@@ -76,6 +76,46 @@ def test_a_folder_of_photos_is_read_with_estimated_cameras_cached_once(tmp_path,
     # Other training photos are another estimate.
     with pytest.raises(AssertionError, match="estimated again"):
         outputs(data, train_views=(0, 1), test_views=(3,))
+
+
+def test_photos_from_wide_apart_are_modelled_as_posed_llff_scenes_are(tmp_path):
+    """Three photos 21 degrees either side of their mean direction (not forward-facing): the space LLFF's rule
+    gives posed data (a metric box on their focus, a far background beyond), not NDC; and the estimate's points
+    beyond the box place the far background's sphere and stay for L_sd, as triangulated ones do."""
+    from frugalnerf_ns.data.dataparsers.llff import scene_space
+    from frugalnerf_ns.data.dataparsers.photos import PhotosDataParserConfig
+    from frugalnerf_ns.data.training_views import training_view_points
+    from frugalnerf_ns.geometry.scene_analysis import FOCUS_BOX_SCALE
+
+    def parse(**options):
+        return PhotosDataParserConfig(data=data, **options).setup().get_dataparser_outputs("train")
+
+    wide = [camera((x, 0.1 * i, 0.0), target=(0.0, 0.0, -1.8)) for i, x in enumerate((-0.7, 0.0, 0.7))]
+    data = write_photos(tmp_path / "wide", wide)
+    train = parse()
+    assert "ndc" not in train.metadata and train.metadata["far_background"] is True
+    c2w = train.cameras.camera_to_worlds
+    box = train.scene_box.aabb
+    assert bool(((c2w[:, :, 3] > box[0]) & (c2w[:, :, 3] < box[1])).all())  # the cameras stand inside it
+    ndc, same = scene_space(c2w.double().numpy(), None, FOCUS_BOX_SCALE)
+    assert not ndc and torch.allclose(box, same)
+    assert parse(ndc=True).metadata["ndc"]["focal"] == pytest.approx(float(train.cameras.fx[0]))
+    with pytest.raises(DataError, match="--focus-box-scale must be positive"):
+        parse(focus_box_scale=0.0)
+
+    # A box half as wide leaves the wall behind the card beyond it.
+    small = parse(focus_box_scale=0.6)
+    sparse, box = small.metadata["sparse_depth"], small.scene_box.aabb
+    beyond = ~((sparse.points >= box[0].double()) & (sparse.points <= box[1].double())).all(dim=-1)
+    assert int(beyond.sum()) >= 20 and int((~beyond).sum()) >= 20
+    # The estimate's points need no images, intrinsics, options or cache (no second triangulation).
+    kept, shell = training_view_points(small, small.cameras, None, None, None, 5, tmp_path / "unused.npz", "cpu", True)
+    assert kept.num_points == sparse.num_points and shell is not None
+    centre = box.mean(dim=0).double()
+    assert shell[1] == pytest.approx(float((sparse.points[beyond] - centre).norm(dim=-1).median()), rel=1e-5)
+    inside, none = training_view_points(small, small.cameras, None, None, None, 5, tmp_path / "unused.npz", "cpu", False)
+    assert none is None and inside.num_points == int((~beyond).sum())
+    assert not (tmp_path / "unused.npz").exists()
 
 
 def test_exif_orientation_and_focal_length_are_honoured(tmp_path):

@@ -76,17 +76,17 @@ def training_view_points(
     empty. Otherwise a metric box drops them as background mismatches."""
     metadata = outputs.metadata or {}
     box = outputs.scene_box.aabb if metadata.get("ndc") is None else None  # NDC boxes are not in world units
-    estimated = metadata.get("sparse_depth")
-    if estimated is not None:
-        # Photos without cameras: the points their cameras were estimated with (no second triangulation).
-        sparse = usable_points(estimated, box, min_points, CONSOLE.print, "estimating the photos' cameras")
-        return (None if sparse is None else _on(sparse, device)), None
-    images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in rgb]
-    near_far = metadata.get("near_far")
-    every = all_training_sparse_depth(
-        images, cameras.camera_to_worlds.double(), intrinsics.double().cpu(), options,
-        None if near_far is None else (float(near_far[0]), float(near_far[1])), cache, CONSOLE.print,
-    )
+    every = metadata.get("sparse_depth")
+    how = "estimating the photos' cameras"
+    if every is None:
+        images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in rgb]
+        near_far = metadata.get("near_far")
+        every = all_training_sparse_depth(
+            images, cameras.camera_to_worlds.double(), intrinsics.double().cpu(), options,
+            None if near_far is None else (float(near_far[0]), float(near_far[1])), cache, CONSOLE.print,
+        )
+        how = "triangulating the training views"
+    # else photos without cameras: the points their cameras were estimated with (no second triangulation).
     shell = far_shell(every.points, box) if far_shell_wanted and box is not None else None
     if shell is not None:
         centre, radius = shell
@@ -95,9 +95,9 @@ def training_view_points(
             "median distance of the sparse points beyond the box; --pipeline.datamanager.far-background-shell False: "
             "infinitely far)."
         )
-        sparse = usable_points(every, None, min_points, CONSOLE.print, "triangulating the training views (in and beyond the box)")
+        sparse = usable_points(every, None, min_points, CONSOLE.print, f"{how} (in and beyond the box)")
         return (None if sparse is None else _on(sparse, device)), (centre.tolist(), radius)
-    sparse = usable_points(every, box, min_points, CONSOLE.print, "triangulating the training views")
+    sparse = usable_points(every, box, min_points, CONSOLE.print, how)
     return (None if sparse is None else _on(sparse, device)), None
 
 

@@ -89,13 +89,7 @@ class LLFF(DataParser):
                     "cameras' average camera"
                 )
         train_c2w = c2w[views.train]
-        layout = classify_camera_layout(torch.from_numpy(train_c2w).float())
-        ndc = self.config.ndc if self.config.ndc is not None else layout.scene_type == "forward-facing"
-        # Not forward-facing: NDC would look along the cameras' mean direction and see the outer views from the
-        # side, and the far bound (~100x the near one on a phone capture) is more than a grid can hold.
-        box = None if ndc or layout.scene_type == "forward-facing" else focus_box(
-            torch.from_numpy(train_c2w), layout.focus, self.config.focus_box_scale
-        )
+        ndc, box = scene_space(train_c2w, self.config.ndc, self.config.focus_box_scale)
         indices = split_indices(split, views)
         files = [images[i] for i in indices]
         check_images(files)
@@ -139,6 +133,21 @@ class LLFF(DataParser):
                 )
         factor = factor or DEFAULT_FACTOR
         return factor, images, make_copies and factor > 1
+
+
+def scene_space(train_c2w: np.ndarray, ndc: Optional[bool], focus_box_scale: float) -> Tuple[bool, Optional[torch.Tensor]]:
+    """(NDC or not, metric box) of an LLFF-like split (posed LLFF, photos with estimated cameras) from its
+    training cameras: NDC when they are forward-facing (``ndc`` overrides), else a metric box around the point
+    they converge on (``focus_box``; beyond it a far background). ``ndc=False`` on a forward-facing split: no box
+    here, ``forward_facing_outputs`` puts one around the training frusta."""
+    layout = classify_camera_layout(torch.from_numpy(train_c2w).float())
+    ndc = ndc if ndc is not None else layout.scene_type == "forward-facing"
+    # Not forward-facing: NDC would look along the cameras' mean direction and see the outer views from the
+    # side, and the far bound (~100x the near one on a phone capture) is more than a grid can hold.
+    box = None if ndc or layout.scene_type == "forward-facing" else focus_box(
+        torch.from_numpy(train_c2w), layout.focus, focus_box_scale
+    )
+    return ndc, box
 
 
 def forward_facing_outputs(

@@ -1,5 +1,7 @@
 """A folder of a few photos and nothing else (issue 33): cameras estimated in-process (``photo_poses``), cached,
-then modelled as LLFF scenes are (NDC along the photos' mean camera, near bound from the estimated points).
+then modelled as posed LLFF scenes are (``llff.scene_space``): forward-facing photos in NDC along their mean camera,
+photos converging on something from wider apart in a metric box around it with a far background beyond; the near
+bound from the estimated points.
 
 Training views are every photo that is not a ``--test-views`` photo. Test photos (a benchmark's held-out views)
 are registered into the training photos' reconstruction with everything of it fixed, so their renders and
@@ -24,19 +26,16 @@ from PIL import Image
 
 from frugalnerf_ns.cache import load_keyed_arrays, save_keyed_arrays, scene_cache_dir
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, EVAL_SPLITS
-from frugalnerf_ns.data.dataparsers.llff import forward_facing_outputs
+from frugalnerf_ns.data.dataparsers.llff import forward_facing_outputs, scene_space
 from frugalnerf_ns.data.downscaled_images import downscaled_all, factor_for_long_side
 from frugalnerf_ns.data.input_checks import IMAGE_SUFFIXES, DataError, check_image_file
 from frugalnerf_ns.data.photo_poses import PhotoCameras, PoseEstimationOptions, estimate_cameras, focal_from_35mm
 from frugalnerf_ns.data.sparse_points import SparseDepth
 from frugalnerf_ns.data.splits import check_indices, uniform_subset
 from frugalnerf_ns.geometry.camera_conventions import average_pose
-from frugalnerf_ns.geometry.scene_analysis import largest_angle_to_mean_direction
+from frugalnerf_ns.geometry.scene_analysis import FOCUS_BOX_SCALE
 
 CACHE_VERSION = 1
-NDC_MAX_SPREAD = 45.0
-"""Largest angle (degrees) between a training photo's viewing direction and their mean for NDC (forward-facing);
-beyond it the scene is modelled in a metric box around the photos' frusta."""
 EXIF_IFD, EXIF_FOCAL_35MM = 0x8769, 0xA405
 
 
@@ -78,10 +77,14 @@ class PhotosDataParserConfig(FewShotDataParserConfig):
     """Train at 1/factor of the photos' size (default: the smallest factor giving a long side of 640 px or
     fewer). Copies, upright, are made once into the scene's cache."""
     ndc: Optional[bool] = None
-    """Model the scene in NDC (forward-facing). Default: NDC unless a training photo looks more than 45 degrees
-    away from their mean direction."""
+    """Model the scene in NDC. Default: as for posed LLFF scenes, NDC when the training photos are forward-facing
+    (every viewing direction within 13 degrees of their mean), else a metric box around the point they converge
+    on, with a learned far background beyond it. ``False`` on forward-facing photos: a box around their frusta."""
     bd_factor: float = 0.75
     """Scale the scene so the nearest point lands at 1 / bd_factor from the photos (NeRF's LLFF loader)."""
+    focus_box_scale: float = FOCUS_BOX_SCALE
+    """Metric box of photos that are not forward-facing: a cube on the photos' focus whose half side is this many
+    times the farthest training photo's distance to it."""
     poses: PoseEstimationOptions = PoseEstimationOptions()
     """How the cameras are estimated."""
 
@@ -131,6 +134,8 @@ class Photos(DataParser):
         factor = self.config.downscale_factor
         if factor is not None and factor < 1:
             raise DataError(f"--downscale-factor must be >= 1 (got {factor})")
+        if self.config.focus_box_scale <= 0:
+            raise DataError(f"--focus-box-scale must be positive (got {self.config.focus_box_scale})")
         factor = factor or factor_for_long_side(width, height)
         # Upright working copies, always (also at factor 1): the EXIF orientation is applied once, there.
         files = downscaled_all([photos[i] for i in train + test], factor, data, say, upright=True)
@@ -212,9 +217,7 @@ class Photos(DataParser):
 
         c2w_train = moved(c2w_train)
         c2w_test = moved(cameras.test_camera_to_worlds.numpy()) if len(test_files) else c2w_train
-        ndc = self.config.ndc
-        if ndc is None:
-            ndc = largest_angle_to_mean_direction(torch.from_numpy(c2w_train)) <= NDC_MAX_SPREAD
+        ndc, box = scene_space(c2w_train, self.config.ndc, self.config.focus_box_scale)
         if split == "train":
             c2w, files = c2w_train, train_files
         elif split in EVAL_SPLITS:
@@ -224,7 +227,7 @@ class Photos(DataParser):
         focal = cameras.focal
         outputs = forward_facing_outputs(
             files, c2w, c2w_train, (focal, focal, cameras.width / 2.0, cameras.height / 2.0),
-            (cameras.width, cameras.height), (near * scale, far * scale), ndc, float(scale),
+            (cameras.width, cameras.height), (near * scale, far * scale), ndc, float(scale), box,
         )
         sparse = cameras.points
         world = (points @ to_frame[:3, :3].T + to_frame[:3, 3]) * scale
