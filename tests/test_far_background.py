@@ -240,3 +240,52 @@ def test_a_model_without_a_far_background_turns_the_datamanagers_sphere_off(proc
 
     assert pipeline(True).datamanager.config.far_background_shell
     assert not pipeline(False).datamanager.config.far_background_shell
+
+
+def test_a_checkpoint_without_the_far_background_stops_loading_with_one_line(tmp_path):
+    """A run saved before its layout got the box (trained in NDC, no far background in its checkpoint) must not
+    load silently into today's model: nerfstudio retries a failed strict load without strictness, which would
+    render the NDC grid in the metric box. Through the evaluation tools' loader (one line, no traceback), on photos 21 degrees either
+    side of their mean (a box with a far background) and a real checkpoint file."""
+    import types
+
+    import pytest
+
+    from frugalnerf_ns.data.dataparsers.photos import PhotosDataParserConfig
+    from frugalnerf_ns.data.datamanager import FrugalDataManagerConfig
+    from frugalnerf_ns.errors import UserError
+    from frugalnerf_ns.model.frugalnerf import FrugalNeRFModelConfig
+    from nerfstudio.utils import eval_utils
+
+    from frugalnerf_ns.run.checkpoints import checkpoint_file_name
+    from frugalnerf_ns.run.pipeline import FrugalPipelineConfig
+    from tests.helpers import TINY_MODEL
+    from tests.photo_scene import camera
+    from tests.test_photos_layout import write_photos
+
+    # The model alone: a checkpoint of a model without a far background.
+    with pytest.raises(UserError, match="has no far background.*set `ndc: true`"):
+        tiny_model({"far_background": True}).load_state_dict(tiny_model().state_dict())
+
+    wide = [camera((x, 0.1 * i, 0.0), target=(0.0, 0.0, -1.8)) for i, x in enumerate((-0.7, 0.0, 0.7))]
+    data = write_photos(tmp_path / "wide", wide)
+    datamanager = FrugalDataManagerConfig(
+        dataparser=PhotosDataParserConfig(data=data), train_num_rays_per_batch=100, num_novel_rays_per_batch=40,
+        patch_size=3, sparse_cache_dir=tmp_path,
+    )
+    pipeline = FrugalPipelineConfig(datamanager=datamanager, model=FrugalNeRFModelConfig(**TINY_MODEL)).setup(
+        device="cpu", test_mode="val"
+    )
+    assert pipeline.model.far_background is not None
+    state = pipeline.state_dict()
+    folder = tmp_path / "nerfstudio_models"
+    folder.mkdir()
+    torch.save({"step": 7, "pipeline": state}, folder / checkpoint_file_name(7))
+    config = types.SimpleNamespace(load_dir=folder, load_step=None)
+    # ns-eval's, ns-render's and the viewer's loader (FrugalPipeline installs the project's in its place).
+    assert eval_utils.eval_load_checkpoint(config, pipeline)[1] == 7  # today's checkpoint loads
+    old = {k: v for k, v in state.items() if ".far_background." not in k}
+    assert len(old) < len(state)
+    torch.save({"step": 8, "pipeline": old}, folder / checkpoint_file_name(8))
+    with pytest.raises(SystemExit, match=r"^frugalnerf: error: this run's checkpoint has no far background"):
+        eval_utils.eval_load_checkpoint(config, pipeline)

@@ -100,6 +100,10 @@ def test_photos_from_wide_apart_are_modelled_as_posed_llff_scenes_are(tmp_path):
     ndc, same = scene_space(c2w.double().numpy(), None, FOCUS_BOX_SCALE)
     assert not ndc and torch.allclose(box, same)
     assert parse(ndc=True).metadata["ndc"]["focal"] == pytest.approx(float(train.cameras.fx[0]))
+    # frugal-auto (the default parser) carries both options to the layout it detects.
+    forced, _ = outputs(data, ndc=True)
+    assert forced.metadata["ndc"]["focal"] == pytest.approx(float(train.cameras.fx[0]))
+    assert torch.allclose(outputs(data, focus_box_scale=0.6)[0].scene_box.aabb, parse(focus_box_scale=0.6).scene_box.aabb)
     with pytest.raises(DataError, match="--focus-box-scale must be positive"):
         parse(focus_box_scale=0.0)
 

@@ -79,8 +79,8 @@ class FrugalDataManagerConfig(VanillaDataManagerConfig):
     triangulation: TriangulationOptions = field(default_factory=TriangulationOptions)
     """Which triangulated points are kept."""
     far_background_shell: bool = True
-    """Where the dataparser models only the near part of the scene in a box with a far background (an LLFF split
-    that is not forward-facing): place that background on a sphere at the distance of the sparse points beyond
+    """Where the dataparser models only the near part of the scene in a box with a far background (an LLFF split or
+    photos without cameras that are not forward-facing): place that background on a sphere at the distance of the sparse points beyond
     the box (``scene_analysis.far_shell``) and keep those points for L_sd, so the rays to them cross the box
     empty. False: the background stays infinitely far away and only the points inside the box are used.
     --pipeline.model.far-background False turns this off too."""

@@ -68,8 +68,9 @@ def training_view_points(
     intrinsics: Float[Tensor, "views 4"], options: TriangulationOptions, min_points: int, cache: Path, device,
     far_shell_wanted: bool = False,
 ) -> Tuple[Optional[SparseDepth], Optional[Tuple[List[float], float]]]:
-    """Triangulated points of the training views on ``device``, from the cache when it matches (None when fewer
-    than ``min_points``), and the far background's sphere ((centre, radius), or None).
+    """Sparse points of the training views on ``device`` (None when fewer than ``min_points``) and the far
+    background's sphere ((centre, radius), or None): the points the photos' cameras were estimated with
+    (metadata ``sparse_depth``), else the training views' triangulated points, from the cache when it matches.
 
     With ``far_shell_wanted`` (a box holding only the near part of the scene, with a far background) the points
     beyond the box place that sphere (``far_shell``) and are kept: L_sd then asks their rays to cross the box

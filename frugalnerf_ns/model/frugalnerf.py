@@ -25,6 +25,7 @@ from torch import Tensor
 from torch.nn import Parameter
 from torch.profiler import record_function
 
+from frugalnerf_ns.errors import UserError
 from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
@@ -95,8 +96,8 @@ class FrugalNeRFModel(Model):
         metadata = self.kwargs.get("metadata") or {}
         # Forward-facing dataparsers (LLFF, RealEstate) ask for NDC through their metadata.
         self.ndc: Optional[Dict[str, float]] = metadata.get("ndc")
-        # A box that holds only the near part of the scene (LLFF layout, cameras converging on an object)
-        # comes with a far background: a colour per direction for the rays that leave it.
+        # A box that holds only the near part of the scene (LLFF layout or photos, cameras converging on an
+        # object) comes with a far background: a colour per direction for the rays that leave it.
         self.far_background: Optional[FarBackground] = None
         if self.config.far_background and metadata.get("far_background"):
             # The sphere it lies on, when the datamanager's points beyond the box say how far it is.
@@ -107,6 +108,7 @@ class FrugalNeRFModel(Model):
         # the module tree and out of every checkpoint.
         self.scorer = ImageScorer()
         self._register_load_state_dict_pre_hook(drop_metric_network_keys)
+        self._register_load_state_dict_pre_hook(self._refuse_a_checkpoint_without_the_far_background)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
         # The geometric adaptation's scale fractions of every training step (recorded by get_metrics_dict),
@@ -183,6 +185,17 @@ class FrugalNeRFModel(Model):
         """Grid resolution for ``num_voxels`` over the field's current box (``resolution_for_voxels``)."""
         box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
         return resolution_for_voxels(num_voxels, box, self._span_stride(), self.config.scale_spanning_rounding)
+
+    def _refuse_a_checkpoint_without_the_far_background(self, state_dict, prefix, *args) -> None:
+        """Loading hook: a checkpoint trained without a far background cannot fill this model's. nerfstudio's
+        pipeline retries a failed strict load without strictness, so the NDC grid of a run saved before its
+        layout got the box (LLFF splits, photos) would render silently in the metric box instead: stop with one
+        line instead. (torch visits every module of a tree with whatever part of the dict is loaded, the
+        pipeline's own keys too: only a dict that holds this model's field is a checkpoint of it.)"""
+        if self.far_background is None or not any(k.startswith(f"{prefix}field.") for k in state_dict):
+            return
+        if not any(k.startswith(f"{prefix}far_background.") for k in state_dict):
+            raise UserError(FAR_BACKGROUND_MISSING)
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         # The far background is a texture like the grid's planes: it learns at their rate.
@@ -332,6 +345,14 @@ class FrugalNeRFModel(Model):
         mask = batch.get("eval_mask")
         return self.scorer.metrics_and_images(outputs, image, None if mask is None else mask.to(self.device),
                                               self.field.num_scales)
+
+
+FAR_BACKGROUND_MISSING = (
+    "this run's checkpoint has no far background, but its data is now modelled in a box around the cameras' focus "
+    "with one (a split that is not forward-facing, read by a parser whose rule changed after the run was saved: it "
+    "was trained in NDC); set `ndc: true` under the dataparser in the run's config.yml to load it as it was "
+    "trained, or train it again"
+)
 
 
 def drop_metric_network_keys(state_dict, prefix, *args) -> None:

@@ -52,12 +52,12 @@ def scene_summary(datamanager, model) -> str:
     detected = "detected" if dm.scene_type == "auto" else "set by --pipeline.datamanager.scene-type"
     views = len(datamanager.warp_images)
     if model.ndc is not None and datamanager.scene_type != "forward-facing":
-        # NDC chosen for a split that is not forward-facing (--ndc True, or the photos parser's wider limit):
-        # say so rather than call the split forward-facing.
+        # NDC chosen for a split that is not forward-facing (--ndc True; RealEstate's default): say so rather
+        # than call the split forward-facing.
         space = (
             "NDC (the data's near/far bounds), although the split is not forward-facing: NDC looks along the "
-            "training cameras' mean direction, and views far from it render poorly (the LLFF parser without "
-            "--ndc models such a split in a box around the focus with a far background; docs/captures.md)"
+            "training cameras' mean direction, and views far from it render poorly (without --ndc, LLFF and photos "
+            "without cameras model such a split in a box around the focus with a far background; docs/captures.md)"
         )
     elif model.ndc is not None:
         space = "NDC (forward-facing, the data's near/far bounds)"

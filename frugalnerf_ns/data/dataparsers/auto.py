@@ -57,6 +57,13 @@ class AutoDataParserConfig(FewShotDataParserConfig):
     wide); nerfstudio/COLMAP pass it on (default: auto)."""
     center_method: Literal["poses", "focus", "none"] = "poses"
     """nerfstudio/COLMAP data only: how nerfstudio centres the poses (focus: cameras looking at an object)."""
+    ndc: Optional[bool] = None
+    """LLFF, photos without cameras and RealEstate: model the scene in NDC (True) or in a metric box (False).
+    Default: the layout's own rule (LLFF and photos: NDC when the training views are forward-facing, else a box
+    around their focus with a far background; RealEstate: NDC)."""
+    focus_box_scale: Optional[float] = None
+    """LLFF and photos without cameras, splits that are not forward-facing: half the side of the box around the
+    focus in farthest-camera distances (default 1.2)."""
     poses: PoseEstimationOptions = PoseEstimationOptions()
     """Photos without cameras only: how their cameras are estimated (field of view without EXIF, focal length
     refinement, features, thresholds)."""
