@@ -56,3 +56,15 @@ def render(c2w, seed=0, focal=FOCAL, radial=0.0):
 
 
 TRUE = [camera((-0.3, 0.05, 0.0)), camera((0.25, -0.05, 0.05)), camera((0.0, 0.25, -0.1)), camera((0.1, -0.2, 0.1))]
+
+
+def write_photos(folder, cameras, suffix=".png", exif=None):
+    """A photos-only folder: ``render`` of each camera saved as ``photo_<i><suffix>`` (with ``exif`` when given)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, c2w in enumerate(cameras):
+        image = Image.fromarray(render(c2w))
+        if exif is None:
+            image.save(folder / f"photo_{i}{suffix}")
+        else:
+            image.save(folder / f"photo_{i}{suffix}", exif=exif)
+    return folder

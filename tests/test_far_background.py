@@ -260,8 +260,7 @@ def test_a_checkpoint_without_the_far_background_stops_loading_with_one_line(tmp
     from frugalnerf_ns.run.checkpoints import checkpoint_file_name
     from frugalnerf_ns.run.pipeline import FrugalPipelineConfig
     from tests.helpers import TINY_MODEL
-    from tests.photo_scene import camera
-    from tests.test_photos_layout import write_photos
+    from tests.photo_scene import camera, write_photos
 
     # The model alone: a checkpoint of a model without a far background.
     with pytest.raises(UserError, match="has no far background.*set `ndc: true`"):

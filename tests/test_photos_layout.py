@@ -15,21 +15,10 @@ from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_lay
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.photo_poses import focal_from_35mm
 from frugalnerf_ns.geometry.reprojection import project_to_camera
-from tests.photo_scene import TRUE, camera, render
+from tests.photo_scene import TRUE, camera, render, write_photos
 from tests.training_helpers import ns_train_main, preset_config, train
 
 EXIF_ORIENTATION = 0x0112
-
-
-def write_photos(folder: Path, cameras, suffix=".png", exif=None):
-    folder.mkdir(parents=True, exist_ok=True)
-    for i, c2w in enumerate(cameras):
-        image = Image.fromarray(render(c2w))
-        if exif is None:
-            image.save(folder / f"photo_{i}{suffix}")
-        else:
-            image.save(folder / f"photo_{i}{suffix}", exif=exif)
-    return folder
 
 
 def outputs(data: Path, **options):
