@@ -35,6 +35,7 @@ def test_every_preset_passes_the_checks(preset):
         ("pipeline.model.geo_weight_decay", 0.0, "--pipeline.model.geo-weight-decay must be > 0"),
         ("pipeline.model.geo_novel_weight", -0.1, "--pipeline.model.geo-novel-weight must be >= 0 and finite, got -0.1"),
         ("pipeline.datamanager.num_novel_rays_per_batch", -1, "got -1"),
+        ("pipeline.datamanager.triangulation.sift_upsample", 0, "--pipeline.datamanager.triangulation.sift-upsample must be a whole number >= 1, got 0"),
         ("pipeline.model.scale_spanning_scales", 0, "--pipeline.model.scale-spanning-scales must be >= 1 (or None: all), got 0"),
     ],
 )

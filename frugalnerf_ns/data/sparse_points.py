@@ -63,7 +63,11 @@ class TriangulationOptions:
     min_triangulation_angle: float = 0.5
     """Smallest angle, in degrees, between two rays of the track (smaller: depth is ill-conditioned)."""
     max_features: int = 8192
-    """SIFT features per image (the largest-scale ones are kept)."""
+    """SIFT features per image (the largest-scale ones are kept); per upsampled image, times ``sift_upsample``^2."""
+    sift_upsample: int = 1
+    """SIFT runs on the training images enlarged this many times (bicubic), keypoints mapped back: at 1/8 of
+    LLFF's size SIFT finds ~1.5k features per image and the finest texture goes unmatched; at 2 it finds
+    5-8x as many and the points triangulate as accurately (scripts/diagnostics/triangulate_scenes.py)."""
     match_neighbors: int = 8
     """Each view is matched with this many nearest cameras (every pair when there are at most this + 1 views)."""
 
@@ -230,20 +234,36 @@ def _pycolmap():
     return pycolmap
 
 
-def extract_sift(images: Sequence[np.ndarray], max_features: int, progress: bool = True) -> Tuple[List[Tensor], List[Tensor]]:
+def extract_sift(
+    images: Sequence[np.ndarray], max_features: int, progress: bool = True, upsample: int = 1
+) -> Tuple[List[Tensor], List[Tensor]]:
     """SIFT keypoints ((u, v) per feature) and unit-length float descriptors of uint8 grey or RGB images, on
     the CPU, at most ``max_features`` per image (the largest-scale ones: they repeat best across views;
-    pycolmap's own cap is not applied by its in-memory extractor)."""
+    pycolmap's own cap is not applied by its in-memory extractor).
+
+    ``upsample`` > 1 runs SIFT on each image enlarged that many times (bicubic) and keeps up to ``max_features``
+    x upsample^2 features; the keypoints are divided back into the image's pixels (COLMAP's and our pixel
+    centres both lie at i + 0.5, so the image spans [0, W] at either size and the map is a plain division)."""
+    upsample = int(upsample)
+    if upsample < 1:
+        raise ValueError(f"sift upsample must be a whole number >= 1, got {upsample}")
+    max_features = int(max_features) * upsample * upsample
     pycolmap = _pycolmap()
     options = pycolmap.FeatureExtractionOptions()
-    options.sift.max_num_features = int(max_features)
+    options.sift.max_num_features = max_features
     extractor = pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
     keypoints, descriptors = [], []
     ticker = Progress(len(images), "frugalnerf sparse points: SIFT", "view", "views/s", 5.0, quiet_seconds=3.0) if progress else None
     for image in images:
         grey = image if image.ndim == 2 else np.asarray(image[..., :3].astype(np.float32) @ [0.299, 0.587, 0.114])
-        kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(np.clip(grey, 0, 255).astype(np.uint8)))
-        uv = torch.tensor([[kp.x, kp.y] for kp in kps], dtype=torch.float64).reshape(-1, 2)
+        grey = np.clip(grey, 0, 255).astype(np.uint8)
+        if upsample > 1:
+            from PIL import Image
+
+            height, width = grey.shape
+            grey = np.asarray(Image.fromarray(grey).resize((width * upsample, height * upsample), Image.BICUBIC))
+        kps, desc = extractor.extract_from_uint8_array(np.ascontiguousarray(grey))
+        uv = torch.tensor([[kp.x, kp.y] for kp in kps], dtype=torch.float64).reshape(-1, 2) / upsample
         scale = torch.tensor([abs(kp.a11 * kp.a22 - kp.a12 * kp.a21) for kp in kps], dtype=torch.float64)
         # 128-wide even without features (a blank image), so matching sees an empty (0, 128) set.
         features = torch.from_numpy(np.asarray(desc.data, dtype=np.float32)).reshape(len(kps), SIFT_DIMENSIONS)
@@ -317,7 +337,7 @@ def triangulate_training_views(
     """Sparse points of the training views: SIFT, matching of nearby views and triangulation with the fixed
     cameras."""
     options = options or TriangulationOptions()
-    keypoints, descriptors = extract_sift(images, options.max_features, progress)
+    keypoints, descriptors = extract_sift(images, options.max_features, progress, options.sift_upsample)
     matches = match_pairs(descriptors, neighbour_pairs(camera_to_worlds, options.match_neighbors), progress)
     tracks = build_tracks(matches, [len(k) for k in keypoints])
     return triangulate_tracks(tracks, keypoints, camera_to_worlds.double(), intrinsics.double(), options, depth_bounds)

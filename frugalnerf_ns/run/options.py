@@ -88,6 +88,8 @@ def option_problems(config: Any) -> List[str]:
     need(dm.num_novel_poses >= 1, f"{d}.num_novel_poses", ">= 1", dm.num_novel_poses)
     need(dm.num_sparse_rays_per_batch >= 0, f"{d}.num_sparse_rays_per_batch", ">= 0", dm.num_sparse_rays_per_batch)
     need(dm.min_sparse_points >= 0, f"{d}.min_sparse_points", ">= 0", dm.min_sparse_points)
+    upsample = dm.triangulation.sift_upsample
+    need(isinstance(upsample, int) and upsample >= 1, f"{d}.triangulation.sift_upsample", "a whole number >= 1", upsample)
     need(dm.fit_box_min_views >= 1, f"{d}.fit_box_min_views", ">= 1", dm.fit_box_min_views)
     need(_non_negative(dm.fit_box_margin), f"{d}.fit_box_margin", ">= 0", dm.fit_box_margin)
     if model.mlp_implementation == "tcnn":
