@@ -184,6 +184,9 @@ def test_cache_key_follows_images_cameras_options_and_bounds():
     assert cache_key(images, c2w + 0.01, k, opts) != base
     assert cache_key(images, c2w, k, TriangulationOptions(max_reprojection_error=3.0)) != base
     assert cache_key(images, c2w, k, opts, (1.0, 5.0)) != base
+    assert cache_key(images, c2w, k, TriangulationOptions(sift_upsample=2)) != base
+    # The default SIFT size adds nothing to the key: caches written before the option still match.
+    assert set(opts.key()) == {"max_reprojection_error", "min_track_length", "min_triangulation_angle", "max_features", "match_neighbors"}
 
 
 @pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
@@ -347,6 +350,7 @@ def test_sift_on_an_enlarged_image_places_points_as_accurately_and_in_the_images
     assert float(offset.abs().max()) < 0.1
 
 
+@pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
 def test_fern_at_1_8_gives_several_times_the_points_with_sift_on_enlarged_images():
     from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 

@@ -72,7 +72,10 @@ class TriangulationOptions:
     """Each view is matched with this many nearest cameras (every pair when there are at most this + 1 views)."""
 
     def key(self) -> Dict[str, float]:
-        return {k: float(v) for k, v in self.__dict__.items()}
+        key = {k: float(v) for k, v in self.__dict__.items()}
+        if self.sift_upsample == 1:  # caches written before the option existed stay valid
+            del key["sift_upsample"]
+        return key
 
 
 # ---- geometry (pure torch) ----------------------------------------------------------------------------------
