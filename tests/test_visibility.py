@@ -73,5 +73,6 @@ def test_the_error_split_adds_up_and_removing_the_unseen_error_gives_the_seen_on
     assert math.isclose(sum(summary[g]["error_share"] for g in ("unseen", "seen_by_1", "seen_by_2_or_more")), 1.0, rel_tol=1e-6)
     assert math.isclose(summary["psnr_if_unseen_were_perfect"], -10 * math.log10((0.04 + 0.05) / 8), rel_tol=1e-6)
     assert summary["psnr_if_unseen_were_perfect"] > summary["psnr"]
+    assert math.isclose(summary["seen_psnr"], -10 * math.log10((0.04 + 0.05) / 6), rel_tol=1e-6)
     assert math.isclose(summary["seen_psnr_of_warped_training_colour"], -10 * math.log10(0.04), rel_tol=1e-6)
     assert math.isclose(summary["in_any_frustum_fraction"], 7 / 8)

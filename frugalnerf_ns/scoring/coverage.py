@@ -22,8 +22,8 @@ def summarise_coverage(seen_by: torch.Tensor, in_frustum: torch.Tensor, squared:
                        warp_squared: torch.Tensor) -> Dict[str, object]:
     """``seen_by`` and ``in_frustum`` per pixel, ``squared`` the render's and ``warp_squared`` the warped training
     colour's squared errors per pixel and channel ([pixels, 3]). Per group: share of the pixels, PSNR on them and
-    share of the squared error; the PSNR with the unseen pixels' error removed (the most a better fit of what
-    was seen can give); the warped training colour's PSNR on the seen pixels."""
+    share of the squared error; the PSNR with the unseen pixels' error removed (what a perfect guess of the
+    unseen would give: a target above it needs the seen pixels rendered better too); the render's and the warped training colour's PSNR on the seen pixels."""
     pixels = seen_by.numel()
     channels = squared.shape[-1]
     total = float(squared.sum())
@@ -37,5 +37,6 @@ def summarise_coverage(seen_by: torch.Tensor, in_frustum: torch.Tensor, squared:
                          "error_share": sse / total if total > 0 else float("nan")}
     seen = seen_by > 0
     summary["psnr_if_unseen_were_perfect"] = psnr_of(float(squared[seen].sum()), pixels * channels)
+    summary["seen_psnr"] = psnr_of(float(squared[seen].sum()), int(seen.sum()) * channels)
     summary["seen_psnr_of_warped_training_colour"] = psnr_of(float(warp_squared[seen].sum()), int(seen.sum()) * channels)
     return summary

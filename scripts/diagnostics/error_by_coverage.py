@@ -79,14 +79,15 @@ def main(argv=None) -> None:
         for key, value in parts.items():
             pooled[key].append(value)
     report["all"] = summarise_coverage(**{key: torch.cat(value) for key, value in pooled.items()})
-    header = "view | PSNR | in a frustum | unseen: share / PSNR / error share | seen by 1 | seen by 2+ | if unseen perfect | warped photos on seen"
+    header = "view | PSNR | in a frustum | unseen: share / PSNR / error share | seen by 1 | seen by 2+ | if unseen perfect | seen: render / warped photos"
     print(header)
     for view in report["views"] + [dict(report["all"], file="all")]:
         cells = [view["file"], f"{view['psnr']:.2f}", f"{view['in_any_frustum_fraction']:.2f}"]
         for name in GROUPS:
             group = view[name]
             cells.append(f"{group['fraction']:.2f} / {group['psnr']:.2f} / {group['error_share']:.2f}")
-        cells += [f"{view['psnr_if_unseen_were_perfect']:.2f}", f"{view['seen_psnr_of_warped_training_colour']:.2f}"]
+        cells += [f"{view['psnr_if_unseen_were_perfect']:.2f}",
+                  f"{view['seen_psnr']:.2f} / {view['seen_psnr_of_warped_training_colour']:.2f}"]
         print(" | ".join(cells))
     # The evaluator averages PSNR over views; "all" above pools the squared error of every pixel.
     views = report["views"]
