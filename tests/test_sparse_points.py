@@ -189,16 +189,21 @@ def test_cache_key_follows_images_cameras_options_and_bounds():
     assert set(opts.key()) == {"max_reprojection_error", "min_track_length", "min_triangulation_angle", "max_features", "match_neighbors"}
 
 
-@pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
-def test_fern_two_views_give_plausible_points_inside_the_llff_bounds():
+def fern_two_views():
+    """The gate's fern pair at 1/8 size as the parser gives it: images, cameras, intrinsics, near/far bounds."""
     from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 
     outputs = LLFFDataParserConfig(data=FERN, downscale_factor=8, train_views=(6, 13)).setup().get_dataparser_outputs("train")
     cams = outputs.cameras
     images = [np.asarray(Image.open(f).convert("RGB")) for f in outputs.image_filenames]
     k = torch.stack([cams.fx[:, 0], cams.fy[:, 0], cams.cx[:, 0], cams.cy[:, 0]], -1).double()
+    return images, cams, k, tuple(float(b) for b in outputs.metadata["near_far"])
+
+
+@pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
+def test_fern_two_views_give_plausible_points_inside_the_llff_bounds():
+    images, cams, k, (near, far) = fern_two_views()
     sparse = triangulate_training_views(images, cams.camera_to_worlds.double(), k)
-    near, far = outputs.metadata["near_far"]
     assert 100 <= sparse.num_points <= 5000
     # Without the bounds as a filter, nearly all points already lie inside them (COLMAP's own bounds).
     depth = project_to_camera(sparse.points[sparse.point], cams.camera_to_worlds.double()[sparse.view], k[sparse.view]).depth
@@ -352,13 +357,7 @@ def test_sift_on_an_enlarged_image_places_points_as_accurately_and_in_the_images
 
 @pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")
 def test_fern_at_1_8_gives_several_times_the_points_with_sift_on_enlarged_images():
-    from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
-
-    outputs = LLFFDataParserConfig(data=FERN, downscale_factor=8, train_views=(6, 13)).setup().get_dataparser_outputs("train")
-    cams = outputs.cameras
-    images = [np.asarray(Image.open(f).convert("RGB")) for f in outputs.image_filenames]
-    k = torch.stack([cams.fx[:, 0], cams.fy[:, 0], cams.cx[:, 0], cams.cy[:, 0]], -1).double()
-    bounds = tuple(float(b) for b in outputs.metadata["near_far"])
+    images, cams, k, bounds = fern_two_views()
     counts = [triangulate_training_views(images, cams.camera_to_worlds.double(), k, TriangulationOptions(sift_upsample=up),
                                          bounds, progress=False).num_points for up in (1, 2)]
     # 412 and 1471 when written: the finest texture of a 504x378 image is below SIFT's smallest scale.
