@@ -66,8 +66,8 @@ class TriangulationOptions:
     """SIFT features per image (the largest-scale ones are kept); per upsampled image, times ``sift_upsample``^2."""
     sift_upsample: int = 1
     """SIFT runs on the training images enlarged this many times (bicubic), keypoints mapped back: at 1/8 of
-    LLFF's size SIFT finds ~1.5k features per image and the finest texture goes unmatched; at 2 it finds
-    5-8x as many and the points triangulate as accurately (scripts/diagnostics/triangulate_scenes.py)."""
+    LLFF's size SIFT finds 1.4-3.2k features per image and the finest texture goes unmatched; at 2 it finds
+    2.4-8x as many, 2.3-11x the points, as accurate (scripts/diagnostics/triangulate_scenes.py)."""
     match_neighbors: int = 8
     """Each view is matched with this many nearest cameras (every pair when there are at most this + 1 views)."""
 

@@ -23,7 +23,8 @@ def summarise_coverage(seen_by: torch.Tensor, in_frustum: torch.Tensor, squared:
     """``seen_by`` and ``in_frustum`` per pixel, ``squared`` the render's and ``warp_squared`` the warped training
     colour's squared errors per pixel and channel ([pixels, 3]). Per group: share of the pixels, PSNR on them and
     share of the squared error; the PSNR with the unseen pixels' error removed (what a perfect guess of the
-    unseen would give: a target above it needs the seen pixels rendered better too); the render's and the warped training colour's PSNR on the seen pixels."""
+    unseen would give: a target above it needs the seen pixels rendered better too); the render's and the warped
+    training colour's PSNR on the seen pixels."""
     pixels = seen_by.numel()
     channels = squared.shape[-1]
     total = float(squared.sum())
