@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import pytest
 import yaml
@@ -88,7 +89,7 @@ def _gate_files(tmp_path: Path) -> tuple:
     return tmp_path / "gate.yaml", tmp_path / "out"
 
 
-def _fill(out: Path, gate_file: Path, psnr: dict, commit: str = "c0ffee1") -> None:
+def _fill(out: Path, gate_file: Path, psnr: dict, commit: str = "c0ffee1", machine: Optional[dict] = None) -> None:
     """Finished-run records for the gate's runs named in ``psnr``, as the sweep runner appends them."""
     scenes_file, scenes = gate.load_gate(gate_file)
     store = ResultStore(out / "results.jsonl")
@@ -96,7 +97,8 @@ def _fill(out: Path, gate_file: Path, psnr: dict, commit: str = "c0ffee1") -> No
         for spec in group:
             if (label, spec.seed) in psnr:
                 store.append({**spec.to_dict(), "status": "ok", "psnr": psnr[(label, spec.seed)], "ssim": 0.5,
-                              "lpips": 0.4, "train_seconds": 60.0, "commit": commit})
+                              "lpips": 0.4, "train_seconds": 60.0, "commit": commit,
+                              **({"machine": machine} if machine else {})})
 
 
 def test_gate_command_records_a_baseline_then_passes_and_fails_on_a_regression(tmp_path, capsys):
@@ -269,3 +271,83 @@ def test_one_scene_can_be_gated_with_several_view_counts(tmp_path, capsys):
         "a_3v": {"scene": "a", "views": 3, "seeds": [2], "tolerance": tol}}}))
     assert gate.main(["--gate", str(gate_file), "--list"]) == 2
     assert capsys.readouterr().err.strip() == f"frugalnerf-gate: {gate_file}: entries 'a' and 'a_3v' both gate a-3v"
+
+
+EPYC = {"host": "vm", "cpus": 2, "cpu": "AMD EPYC", "cpu_capability": "AVX512", "torch": "2.14.1"}
+XEON = {"host": "vm", "cpus": 2, "cpu": "Intel Xeon", "cpu_capability": "AVX2", "torch": "2.14.1"}
+
+
+def test_gate_says_when_the_baseline_trained_on_another_machine(tmp_path, capsys):
+    """The same code trains to other numbers on another processor: a recorded entry keeps its runs' machine,
+    and the gate names the scenes whose baseline came from elsewhere (or does not say), in its output and gate.md."""
+    gate_file, out = _gate_files(tmp_path)
+    baseline = tmp_path / "baseline.yaml"
+    psnr = {("a-2v", 1): 17.0, ("b-2v", 1): 15.0, ("b-2v", 2): 15.4}
+    _fill(out, gate_file, psnr, machine=EPYC)
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out), "--record"]) == 0
+    recorded = gate.load_baseline(baseline)
+    assert recorded["scenes"]["a-2v"]["machine"] == "AMD EPYC, AVX512, torch 2.14.1"
+    capsys.readouterr()
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out)]) == 0
+    assert "Note:" not in capsys.readouterr().out  # same machine: nothing to say
+
+    elsewhere = tmp_path / "elsewhere"
+    _fill(elsewhere, gate_file, psnr, machine=XEON)
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(elsewhere)]) == 0
+    text = capsys.readouterr().out
+    assert "Note: the baseline of a-2v, b-2v was trained on another machine than these runs (Intel Xeon, AVX2" in text
+    assert "--against <commit>" in (elsewhere / "gate.md").read_text()
+
+    # An entry recorded before the gate kept machines does not say where it trained: said too.
+    del recorded["scenes"]["b-2v"]["machine"]
+    baseline.write_text(yaml.safe_dump(recorded))
+    assert gate.main(["--gate", str(gate_file), "--baseline", str(baseline), "--out", str(out)]) == 0
+    assert "Note: the baseline of b-2v was trained" in capsys.readouterr().out
+
+
+def test_gate_against_a_commit_compares_with_its_runs_on_this_machine(tmp_path, capsys):
+    """--against REV: the baseline is REV's runs in their own folder (here finished already, so nothing is checked
+    out or trained), not the baseline file; a bad REV, or --against with --record, is one line and exit 2."""
+    gate_file, out = _gate_files(tmp_path)
+    _fill(out, gate_file, {("a-2v", 1): 17.0, ("b-2v", 1): 15.0, ("b-2v", 2): 15.4}, machine=EPYC)
+    theirs = tmp_path / "theirs"
+    _fill(theirs, gate_file, {("a-2v", 1): 17.5, ("b-2v", 1): 15.1, ("b-2v", 2): 15.3}, commit="beef002", machine=EPYC)
+    missing_file = tmp_path / "no_baseline.yaml"  # never read with --against
+    args = ["--gate", str(gate_file), "--baseline", str(missing_file), "--out", str(out), "--against-out", str(theirs)]
+    head = gate.resolve_commit("HEAD")
+    assert gate.main([*args, "--against", "HEAD"]) == 1
+    text = capsys.readouterr().out
+    assert f"the baseline: 3 runs with the code of {head} in {theirs.resolve()}, 0 to train" in text
+    assert f"baseline {head} (trained here) PSNR" in text
+    assert "| a-2v | 1 | 17.00 (0.00) | 0.500 | 0.400 | 17.50 / 0.500 / 0.400 |" in text and "FAILED on a-2v" in text
+    assert "Note:" not in text  # both sides trained on one machine
+
+    theirs_close = tmp_path / "theirs_close"
+    _fill(theirs_close, gate_file, {("a-2v", 1): 17.2, ("b-2v", 1): 15.1, ("b-2v", 2): 15.3}, machine=EPYC)
+    assert gate.main([*args[:-2], "--against-out", str(theirs_close), "--against", "HEAD"]) == 0
+
+    assert gate.main([*args, "--against", "no-such-rev"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"frugalnerf-gate: --against no-such-rev: not a commit of the repository at {gate.ROOT}"]
+    assert gate.main([*args, "--against", "HEAD", "--record"]) == 2
+    assert "use one of them" in capsys.readouterr().err
+
+
+def test_checkout_makes_a_detached_worktree_of_the_commit(tmp_path):
+    import subprocess
+
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    for value in ("1", "2"):
+        (repo / "v.txt").write_text(value)
+        subprocess.run([*git, "add", "-A"], check=True)
+        subprocess.run([*git, "commit", "-qm", value], check=True)
+    first = gate.resolve_commit("HEAD~1", repo)
+    tree = gate.checkout(first, repo)
+    assert tree == repo / "outputs" / "gate" / "worktrees" / first
+    assert (tree / "v.txt").read_text() == "1" and (repo / "v.txt").read_text() == "2"
+    assert gate.checkout(first, repo) == tree  # reused
+    with pytest.raises(gate.GateError, match="not a commit"):
+        gate.resolve_commit("HEAD~5", repo)

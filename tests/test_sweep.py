@@ -111,21 +111,16 @@ def test_failure_table_names_the_log_and_error():
     assert report.failure_table([{"status": "ok"}]) == ""
 
 
-def test_a_run_trains_and_scores_with_the_code_of_the_checkout_that_started_it(tmp_path):
-    """A sweep or gate started from a git worktree must train that worktree's code (a Ray worker imports the
-    installed copy first): ``execute`` runs its children from ``code_root`` and records that checkout's commit."""
+def _stub_checkout(tmp_path: Path) -> tuple:
+    """A git checkout whose package holds only a stand-in for the training tools: it says which file ran, and
+    leaves what the runner looks for (a checkpoint; a RESULT line). (checkout, package, its short commit)."""
     import subprocess
-
-    from frugalnerf_ns.tools.sweep.grid import RunSpec
-    from frugalnerf_ns.tools.sweep.runner import execute
 
     checkout = tmp_path / "worktree"
     package = checkout / "frugalnerf_ns"
     (package / "tools").mkdir(parents=True)
     (package / "__init__.py").write_text("")
     (package / "tools" / "__init__.py").write_text("")
-    # Stands in for the worktree's version of the tools: it says which file ran, and leaves what the runner
-    # looks for (a checkpoint; a RESULT line).
     (package / "tools" / "offline_tools.py").write_text(
         "import json, pathlib, sys\n"
         "args = sys.argv[1:]\n"
@@ -142,7 +137,16 @@ def test_a_run_trains_and_scores_with_the_code_of_the_checkout_that_started_it(t
     subprocess.run([*git, "add", "-A"], check=True)
     subprocess.run([*git, "commit", "-qm", "worktree"], check=True)
     commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    return checkout, package, commit
 
+
+def test_a_run_trains_and_scores_with_the_code_of_the_checkout_that_started_it(tmp_path):
+    """A sweep or gate started from a git worktree must train that worktree's code (a Ray worker imports the
+    installed copy first): ``execute`` runs its children from ``code_root`` and records that checkout's commit."""
+    from frugalnerf_ns.tools.sweep.grid import RunSpec
+    from frugalnerf_ns.tools.sweep.runner import execute
+
+    checkout, package, commit = _stub_checkout(tmp_path)
     spec = RunSpec(scene="proc", views=2, method="frugalnerf-tiny", option="full", data=str(tmp_path), parser_args=[],
                    train_args=[])
     record = execute(spec, tmp_path / "out", threads=1, code_root=str(checkout))
@@ -244,6 +248,37 @@ def test_a_killed_worker_is_retried_and_its_training_dies_with_it(local_ray, pro
     assert not Path(f"/proc/{killed['training']}").exists() or b"zombie" in Path(f"/proc/{killed['training']}/status").read_bytes().lower()
     assert records[0]["status"] == "ok"  # Ray ran the task again on a new worker
     assert len(ResultStore(out / "results.jsonl").records()) == 1
+
+
+@pytest.mark.e2e
+def test_a_sweep_trains_the_checkout_it_is_given(local_ray, tmp_path):
+    """``frugalnerf-gate --against REV`` trains REV's worktree through ``run_sweep(code_root=...)``: the Ray task
+    runs that checkout's tools and its record names that checkout and commit, and the machine it ran on."""
+    from frugalnerf_ns.tools.sweep.cli import run_sweep
+    from frugalnerf_ns.tools.sweep.grid import RunSpec
+    from frugalnerf_ns.tools.sweep.runner import machine
+
+    checkout, package, commit = _stub_checkout(tmp_path)
+    spec = RunSpec(scene="proc", views=2, method="frugalnerf-tiny", option="full", data=str(tmp_path), parser_args=[],
+                   train_args=[])
+    (record,) = run_sweep([spec], tmp_path / "out", say=lambda line: None, code_root=checkout)
+    assert record["status"] == "ok", record
+    assert record["commit"] == commit and record["code_root"] == str(checkout) and record["psnr"] == 12.5
+    assert next((tmp_path / "out" / "runs").rglob("step-*.ckpt")).read_text() == str(package / "tools" / "offline_tools.py")
+    assert record["machine"]["cpu"] == machine()["cpu"] and record["machine"]["torch"] == machine()["torch"]
+
+
+def test_a_runs_machine_names_what_decides_its_rounding():
+    import torch
+
+    from frugalnerf_ns.tools.sweep.gate import machine_name
+    from frugalnerf_ns.tools.sweep.runner import machine
+
+    info = machine()
+    assert info["torch"] == torch.__version__ and info["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert isinstance(info["cpu"], str)
+    assert machine_name({"machine": info}).endswith(f"{info['cpu_capability']}, torch {torch.__version__}")
+    assert machine_name({}) == ""
 
 
 @pytest.mark.slow

@@ -64,8 +64,10 @@ def run_sweep(
     retry_failed: bool = False,
     progress_every: float = 60.0,
     say: Callable[[str], None] = print,
+    code_root: Optional[Path] = None,
 ) -> List[Dict[str, Any]]:
-    """Run the specs not yet finished as Ray tasks; the records of every spec (finished before or now)."""
+    """Run the specs not yet finished as Ray tasks; the records of every spec (finished before or now). The runs
+    train the code of ``code_root`` (a checkout; default the one this module is imported from)."""
     out = Path(out).resolve()
     store = ResultStore(out / "results.jsonl")
     by_key = {spec.key: spec for spec in specs}
@@ -76,7 +78,8 @@ def run_sweep(
     if todo:
         ray, started = _init_ray(address)
         try:
-            _schedule(ray, [by_key[k] for k in todo], out, store, cpus_per_run, gpus_per_run, progress_every, say)
+            _schedule(ray, [by_key[k] for k in todo], out, store, cpus_per_run, gpus_per_run, progress_every, say,
+                      Path(code_root or ROOT))
         finally:
             if started:
                 ray.shutdown()
@@ -84,7 +87,7 @@ def run_sweep(
     return [latest[k] for k in by_key if k in latest]
 
 
-def _schedule(ray, specs, out, store, cpus_per_run, gpus_per_run, progress_every, say) -> None:
+def _schedule(ray, specs, out, store, cpus_per_run, gpus_per_run, progress_every, say, code_root: Path) -> None:
     resources = ray.cluster_resources()
     total_cpus, total_gpus = int(resources.get("CPU", 1)), resources.get("GPU", 0)
     gpus = gpus_per_run if gpus_per_run is not None else (1 if total_gpus >= 1 else 0)
@@ -95,8 +98,9 @@ def _schedule(ray, specs, out, store, cpus_per_run, gpus_per_run, progress_every
         f"{slots} at a time ({total_cpus} CPUs" + (f", {total_gpus:g} GPUs" if total_gpus else "") + ")")
     remote = ray.remote(execute).options(num_cpus=cpus, num_gpus=gpus, max_retries=1, retry_exceptions=False)
     threads = None if gpus else cpus
-    # The checkout this sweep was started from: its code trains, whatever copy a worker imports first.
-    pending = {remote.remote(spec, out, threads, str(ROOT)): spec for spec in specs}
+    # The checkout this sweep was started from (or the one asked for): its code trains, whatever copy a worker
+    # imports first.
+    pending = {remote.remote(spec, out, threads, str(code_root)): spec for spec in specs}
     done = failed = 0
     durations: List[float] = []
     last_report = time.time()

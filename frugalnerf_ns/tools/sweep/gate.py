@@ -7,12 +7,19 @@ mean over its seeds with the recorded baseline (``configs/gate_baseline.yaml``) 
   frugalnerf-gate --record              # write the baseline file from this run (say why in the commit; the
                                         # comment lines under its header are kept)
   frugalnerf-gate --list                # the runs and whether they are done
+  frugalnerf-gate --against main        # the baseline trained here: the same runs with main's code (a git
+                                        # worktree in outputs/gate/worktrees), this machine's numbers on both sides
 
 Runs go to ``outputs/gate/<commit>`` (``<commit>-dirty-<hash of the diff>`` with uncommitted changes), so the
 same code resumes its own runs and never reuses another commit's. A scene fails when its mean PSNR or SSIM
 falls below the baseline's by more than the tolerance, or its LPIPS rises above it by more, or when its seeds
 spread more than the scene's ``max_spread`` (dB) and more than the baseline's spread plus the PSNR tolerance
 (a spread within that is shown as a missed target, not a regression).
+
+The same code and seed train to different numbers on another processor or torch build (floating-point rounding
+that training amplifies: juice box 3-view seed 43 gave 23.15 dB on one machine and 24.30 on another). The gate
+says so when the baseline file's runs came from another machine, or do not name theirs; ``--against REV``
+compares with REV's code trained on this machine instead of the file.
 """
 
 from __future__ import annotations
@@ -138,8 +145,18 @@ def load_baseline(path: Path = BASELINE_FILE) -> Dict[str, Any]:
     return baseline
 
 
+def machine_name(record: Mapping[str, Any]) -> str:
+    """What decides a run's floating-point rounding, from its record: processor, torch's vector instructions
+    and build, GPU ("" for a record that does not say)."""
+    info = record.get("machine") or {}
+    parts = [info.get("cpu"), info.get("cpu_capability"), f"torch {info['torch']}" if info.get("torch") else None,
+             info.get("gpu")]
+    return ", ".join(str(p) for p in parts if p)
+
+
 def summarise(records: Sequence[Mapping[str, Any]]) -> Dict[str, Any]:
-    """Mean and spread (max - min) of each metric over a scene's ok runs, and each seed's values."""
+    """Mean and spread (max - min) of each metric over a scene's ok runs, each seed's values, and the machines
+    they trained on."""
     ok = [r for r in records if r.get("status") == "ok"]
     if not ok:
         return {"runs": 0}
@@ -148,7 +165,17 @@ def summarise(records: Sequence[Mapping[str, Any]]) -> Dict[str, Any]:
         "mean": {m: statistics.fmean(float(r[m]) for r in ok) for m in METRICS},
         "spread": {m: max(float(r[m]) for r in ok) - min(float(r[m]) for r in ok) for m in METRICS},
         "seeds": {int(r["seed"]): {m: round(float(r[m]), 4) for m in METRICS} for r in ok},
+        "machine": "; ".join(sorted({machine_name(r) for r in ok})),
     }
+
+
+def other_machines(scenes: Sequence["GateScene"], summaries: Mapping[str, Mapping[str, Any]],
+                   baseline: Mapping[str, Any]) -> List[str]:
+    """Labels of the scenes whose baseline was trained on another machine than this run's, or does not say
+    where (entries recorded before the gate kept the machine)."""
+    base_scenes = baseline.get("scenes") or {}
+    return [s.label for s in scenes if summaries.get(s.label, {}).get("runs") and s.label in base_scenes
+            and (base_scenes[s.label].get("machine") or "") != summaries[s.label]["machine"]]
 
 
 def verdict(scene: GateScene, summary: Mapping[str, Any], baseline: Optional[Mapping[str, Any]]) -> List[str]:
@@ -208,10 +235,38 @@ def baseline_document(scenes: Sequence[GateScene], summaries: Mapping[str, Mappi
         summary = summaries[s.label]
         entries[s.label] = {"commit": commit if isinstance(commit, str) else commit[s.label], "seeds": summary["seeds"],
                             "mean": {m: round(v, 4) for m, v in summary["mean"].items()},
-                            "spread": {m: round(v, 4) for m, v in summary["spread"].items()}}
+                            "spread": {m: round(v, 4) for m, v in summary["spread"].items()},
+                            "machine": summary["machine"]}
     # The file's commit names every commit its scenes were recorded at (a subset recorded later adds its own).
     commits = sorted({c for e in entries.values() if e.get("commit") for c in str(e["commit"]).split("+")})
     return {"commit": "+".join(commits or [str(commit)]), "recorded": datetime.date.today().isoformat(), "scenes": entries}
+
+
+def resolve_commit(rev: str, root: Path = ROOT) -> str:
+    """``rev``'s short commit hash in the repository at ``root`` (GateError in one line when it names none)."""
+    try:
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "--verify", "--quiet", f"{rev}^{{commit}}"],
+                             capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        raise GateError(f"--against {rev}: cannot run git in {root} ({err})") from None
+    if out.returncode != 0 or not out.stdout.strip():
+        raise GateError(f"--against {rev}: not a commit of the repository at {root}")
+    return out.stdout.strip()
+
+
+def checkout(commit: str, root: Path = ROOT) -> Path:
+    """A detached git worktree of ``commit`` in ``<root>/outputs/gate/worktrees/<commit>`` (reused when it is
+    there): the code the ``--against`` runs train with."""
+    dest = Path(root) / "outputs" / "gate" / "worktrees" / commit
+    if (dest / ".git").exists():
+        return dest
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    made = subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(dest), commit],
+                          capture_output=True, text=True, timeout=300)
+    if made.returncode != 0:
+        reason = (made.stderr.strip().splitlines() or ["git worktree add failed"])[-1]
+        raise GateError(f"--against {commit}: cannot check it out in {dest} ({reason})")
+    return dest
 
 
 # What a run computes depends on these; the gate's own files, docs and tests do not change it.
@@ -260,6 +315,22 @@ def kept_comments(path: Path) -> str:
     return "".join(kept)
 
 
+def against_baseline(commit: str, every: Sequence[RunSpec], specs: Mapping[str, Sequence[RunSpec]],
+                     out: Optional[Path], cpus_per_run: Optional[int], run_sweep) -> Dict[str, Any]:
+    """The baseline of ``--against``: the same runs trained on this machine with ``commit``'s code (checked out
+    only when some run is not finished in ``out``), summarised like the baseline file's entries."""
+    from frugalnerf_ns.tools.sweep.store import ResultStore
+
+    out = (out or ROOT / "outputs" / "gate" / commit).resolve()
+    done = ResultStore(out / "results.jsonl").latest([s.key for s in every])
+    todo = [s for s in every if done.get(s.key, {}).get("status") != "ok"]
+    code_root = checkout(commit) if todo else None
+    print(f"frugalnerf-gate: the baseline: {len(every)} runs with the code of {commit} in {out}, {len(todo)} to train")
+    records = {r["key"]: r for r in run_sweep(every, out, cpus_per_run=cpus_per_run, code_root=code_root)}
+    scenes = {label: summarise([records[s.key] for s in group if s.key in records]) for label, group in specs.items()}
+    return {"commit": f"{commit} (trained here)", "scenes": {label: v for label, v in scenes.items() if v.get("runs")}}
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="frugalnerf-gate", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -273,7 +344,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--max-iterations", type=int, help="every run's budget (a smoke test; never --record it)")
     parser.add_argument("--record", action="store_true", help="write the baseline file from this run's results")
     parser.add_argument("--list", action="store_true", help="print the runs and whether they are done, then exit")
+    parser.add_argument("--against", metavar="REV", help="compare with the same runs trained here with REV's code "
+                        "(a git worktree) instead of the baseline file: both sides on this machine")
+    parser.add_argument("--against-out", type=Path, help="runs folder of --against (default outputs/gate/<REV's commit>)")
     args = parser.parse_args(argv)
+    if args.against and args.record:
+        print("frugalnerf-gate: --record writes this code's runs into the baseline file and --against compares with "
+              "another commit's runs: use one of them", file=sys.stderr)
+        return 2
 
     from frugalnerf_ns.tools.sweep.cli import run_sweep
     from frugalnerf_ns.tools.sweep.store import ResultStore
@@ -292,8 +370,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                 baseline = load_baseline(args.baseline)
             except GateError as err:
                 print(f"frugalnerf-gate: replacing the unreadable baseline: {err}", file=sys.stderr)
-        elif not args.record and not args.list:
+        elif not args.record and not args.list and not args.against:
             baseline = load_baseline(args.baseline)
+        against = resolve_commit(args.against) if args.against else None
     except GateError as err:
         print(f"frugalnerf-gate: {err}", file=sys.stderr)
         return 2
@@ -321,9 +400,22 @@ def main(argv: Optional[List[str]] = None) -> int:
     records = {r["key"]: r for r in run_sweep(every, out, cpus_per_run=args.cpus_per_run)}
     summaries = {label: summarise([records[s.key] for s in group if s.key in records])
                  for label, group in specs.items()}
+    if against:
+        try:
+            baseline = against_baseline(against, every, specs, args.against_out, args.cpus_per_run, run_sweep)
+        except GateError as err:
+            print(f"frugalnerf-gate: {err}", file=sys.stderr)
+            return 2
     failures = {s.label: verdict(s, summaries[s.label], (baseline.get("scenes") or {}).get(s.label))
                 for s in scenes}
     text = table(scenes, summaries, baseline, failures)
+    elsewhere = other_machines(scenes, summaries, baseline)
+    if elsewhere:
+        here = next(summaries[label]["machine"] for label in elsewhere)
+        text += (f"\n\nNote: the baseline of {', '.join(elsewhere)} was trained on another machine than these runs "
+                 f"({here or 'a machine the records do not name'}), or its entry does not say on which: the same code "
+                 "trains to different numbers on another processor or torch build; `--against <commit>` trains the "
+                 "baseline's code here.")
     (out / "gate.md").write_text(f"code {version}\n\n{text}\n")
     print()
     print(text)

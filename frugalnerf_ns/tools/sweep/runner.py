@@ -78,11 +78,30 @@ def git_commit(root: Path = ROOT) -> Optional[str]:
         return None
 
 
+def cpu_model() -> str:
+    """The processor's name (Linux's /proc/cpuinfo; elsewhere what the platform module says, maybe empty)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
 def machine() -> Dict[str, Any]:
-    info: Dict[str, Any] = {"host": socket.gethostname(), "cpus": os.cpu_count(), "python": platform.python_version()}
+    """Where a run trained. The processor, torch's build and the vector instructions torch dispatches to decide
+    the floating-point rounding: the same code and seed train to different numbers on machines that differ in
+    them (juice box 3-view by up to 1.15 dB; docs/quality-gate.md), so the gate compares runs of one machine."""
+    info: Dict[str, Any] = {"host": socket.gethostname(), "cpus": os.cpu_count(), "python": platform.python_version(),
+                            "cpu": cpu_model()}
     try:
         import torch
 
+        info["torch"] = torch.__version__
+        capability = getattr(torch.backends.cpu, "get_cpu_capability", None)
+        if capability is not None:
+            info["cpu_capability"] = capability()
         if torch.cuda.is_available():
             info["gpu"] = torch.cuda.get_device_name(0)
     except ImportError:
