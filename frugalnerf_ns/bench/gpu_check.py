@@ -394,14 +394,14 @@ def part_tcnn(args, device: torch.device, scenes) -> List[Dict[str, Any]]:
 
 # ---- driver ----------------------------------------------------------------------------------------------
 def machine_description(device: torch.device) -> Dict[str, Any]:
+    from frugalnerf_ns.tools.sweep.runner import cpu_model, git_commit
+
     info: Dict[str, Any] = {"torch": torch.__version__, "python": platform.python_version(), "device": device.type}
     if device.type == "cuda":
         props = torch.cuda.get_device_properties(device)
         info.update({"gpu": props.name, "gpu_memory_gib": props.total_memory / 2**30, "cuda": torch.version.cuda})
     else:
-        info["cpu"] = platform.processor() or platform.machine()
-    from frugalnerf_ns.tools.sweep.runner import git_commit
-
+        info["cpu"] = cpu_model() or platform.machine()
     info["commit"] = git_commit()
     return info
 

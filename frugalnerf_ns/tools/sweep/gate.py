@@ -316,9 +316,10 @@ def kept_comments(path: Path) -> str:
 
 
 def against_baseline(commit: str, every: Sequence[RunSpec], specs: Mapping[str, Sequence[RunSpec]],
-                     out: Optional[Path], cpus_per_run: Optional[int], run_sweep) -> Dict[str, Any]:
+                     out: Optional[Path], cpus_per_run: Optional[int]) -> Dict[str, Any]:
     """The baseline of ``--against``: the same runs trained on this machine with ``commit``'s code (checked out
     only when some run is not finished in ``out``), summarised like the baseline file's entries."""
+    from frugalnerf_ns.tools.sweep.cli import run_sweep
     from frugalnerf_ns.tools.sweep.store import ResultStore
 
     out = (out or ROOT / "outputs" / "gate" / commit).resolve()
@@ -402,7 +403,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                  for label, group in specs.items()}
     if against:
         try:
-            baseline = against_baseline(against, every, specs, args.against_out, args.cpus_per_run, run_sweep)
+            baseline = against_baseline(against, every, specs, args.against_out, args.cpus_per_run)
         except GateError as err:
             print(f"frugalnerf-gate: {err}", file=sys.stderr)
             return 2
