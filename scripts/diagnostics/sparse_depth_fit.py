@@ -9,7 +9,8 @@ training views. The depth compared is the one L_sd compares (``objective.depth_t
 depth, and where the scene has a far background sphere, that sphere's distance in the share the field lets
 through). Printed per run and training view: observations, the relative depth difference |rendered - point| /
 point (median, p90, share above 10 %), and the mean of L_sd's own term (1/rendered - 1/point)^2; then the same per
-quarter of the points' depth with that quarter's share of the term (``scoring/sparse_fit.py``). A run that scores
+quarter of the points' depth with that quarter's share of the term (``scoring/sparse_fit.py``), and per track
+length (the number of training views a point is seen in). A run that scores
 well on the test views yet lies far from many points says those points are wrong; a run that fits them closely
 and scores worse says fitting them costs it.
 """
@@ -78,6 +79,11 @@ def main(argv=None) -> None:
             entry["views"][view] = depth_agreement(rendered[mine], sparse.depth[mine])
         report["runs"].append(entry)
         rows = [(f"view {view}", row) for view, row in entry["views"].items()] + [("all", entry["all"])]
+        # Points seen in every training view are held by more rays than those of one pair: split by track length.
+        track = torch.bincount(sparse.point, minlength=sparse.num_points)[sparse.point]
+        entry["by_track_length"] = {int(k): depth_agreement(rendered[track == k], sparse.depth[track == k])
+                                    for k in sorted(set(track.tolist()))}
+        rows += [(f"seen in {k} views", row) for k, row in entry["by_track_length"].items()]
         rows += [(f"depth {band['depth_from']:.3g}-{band['depth_to']:.3g} (term share {band['share_of_term']:.2f})", band)
                  for band in entry["depth_bands"]]
         for name, row in rows:
