@@ -44,11 +44,40 @@ def depth_at_points(pipeline, sparse) -> torch.Tensor:
     return depth
 
 
+def draw_agreement(images, sparse, rendered: torch.Tensor, path: Path) -> None:
+    """The training views one above the other, each observation circled green / yellow / red as the run's depth
+    lies within 5 %, within 10 % or beyond from the point's; the nearest quarter of the points drawn larger."""
+    from PIL import Image, ImageDraw
+
+    relative = ((rendered - sparse.depth).abs() / sparse.depth).tolist()
+    near = (sparse.depth <= sparse.depth.quantile(0.25)).tolist()
+    tiles = []
+    for index, image in enumerate(images):
+        tile = Image.fromarray((image[..., :3].clamp(0, 1).numpy() * 255).round().astype("uint8"))
+        pen = ImageDraw.Draw(tile)
+        for obs in (sparse.view == index).nonzero()[:, 0].tolist():
+            u, v = sparse.pixels[obs].tolist()
+            colour = (0, 255, 0) if relative[obs] < 0.05 else (255, 255, 0) if relative[obs] < 0.1 else (255, 0, 0)
+            radius = 4 if near[obs] else 2
+            pen.ellipse([u - radius, v - radius, u + radius, v + radius], outline=colour, width=2 if near[obs] else 1)
+        tiles.append(tile)
+    canvas = Image.new("RGB", (max(t.width for t in tiles), sum(t.height for t in tiles)))
+    top = 0
+    for tile in tiles:
+        canvas.paste(tile, (0, top))
+        top += tile.height
+    path.parent.mkdir(parents=True, exist_ok=True)
+    canvas.save(path)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=Path, required=True, help="config.yml of the run whose set-up gives the points")
     parser.add_argument("runs", type=Path, nargs="+", help="config.yml of each run to compare with the points")
     parser.add_argument("--out", type=Path, help="JSON report (default: print only)")
+    parser.add_argument("--draw", type=Path, help="PNG: the training views stacked, each observation circled by how "
+                        "far the first run's depth lies from it (green < 5 %%, yellow < 10 %%, red beyond; thick: the "
+                        "nearest quarter of the points)")
     args = parser.parse_args(argv)
     for path in [args.points, *args.runs]:
         if not path.is_file():
@@ -65,6 +94,8 @@ def main(argv=None) -> None:
     if sparse is None:
         raise SystemExit(f"sparse_depth_fit: error: {args.points} trains without sparse points")
     sparse = type(sparse)(*(t.cpu() for t in sparse))
+    dataset = source.datamanager.train_dataset
+    images = [dataset.get_image_float32(i) for i in range(len(dataset))] if args.draw else []
     del source
     print(f"{sparse.num_points} points, {sparse.view.numel()} observations (from {args.points})")
     report = {"points": str(args.points), "num_points": sparse.num_points, "runs": []}
@@ -90,6 +121,9 @@ def main(argv=None) -> None:
             print(f"{path.parent.name} | {name} | {row['observations']} | {row['median_relative']:.3f} / "
                   f"{row['p90_relative']:.3f} | {row['above_10_percent']:.3f} | {row['mean_inverse_depth_term']:.4g}")
         del pipeline
+        if args.draw and path == args.runs[0]:
+            draw_agreement(images, sparse, rendered, args.draw)
+            print(f"wrote {args.draw}")
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=2))
