@@ -5,7 +5,7 @@ import math
 import torch
 
 from frugalnerf_ns.model.losses import inverse_depth_loss
-from frugalnerf_ns.scoring.sparse_fit import agreement_by_depth, depth_agreement
+from frugalnerf_ns.scoring.sparse_fit import agreement_by_depth, depth_agreement, inverse_depth_term
 
 
 def test_agreement_counts_the_points_off_by_more_than_ten_percent_and_reports_the_loss_term():
@@ -35,3 +35,9 @@ def test_depth_bands_split_by_the_points_depth_and_their_term_shares_add_up():
     assert math.isclose(bands[1]["above_10_percent"], 0.5)
     assert math.isclose(bands[0]["mean_inverse_depth_term"] * 2 + bands[1]["mean_inverse_depth_term"] * 2,
                         float(inverse_depth_loss(rendered, target)) * 4, rel_tol=1e-5)
+
+
+def test_the_per_observation_term_averages_to_the_training_loss():
+    rendered = torch.tensor([0.0, 0.5, 3.0, 80.0])  # an empty ray (depth 0) too: both clamp it
+    target = torch.tensor([1.0, 0.4, 3.3, 60.0])
+    assert math.isclose(float(inverse_depth_term(rendered, target).mean()), float(inverse_depth_loss(rendered, target)), rel_tol=1e-6)

@@ -7,19 +7,25 @@ from typing import Dict, List
 
 import torch
 
-from frugalnerf_ns.model.losses import inverse_depth_loss
+
+
+def inverse_depth_term(rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L_sd's term per observation, (1/rendered - 1/target)^2 with depths clamped at 1e-3, as
+    ``model.losses.inverse_depth_loss`` averages it (scoring sits below the model and does not import it; a test
+    holds the two equal)."""
+    return (1.0 / rendered.clamp_min(1e-3) - 1.0 / target.clamp_min(1e-3)) ** 2
 
 
 def depth_agreement(rendered: torch.Tensor, target: torch.Tensor) -> Dict[str, float]:
     """Per observation, ``rendered`` (the run's depth on the ray through the point's pixel) against ``target`` (the
     point's depth): the relative difference |rendered - target| / target (median, p90, share above 10 %) and L_sd's
-    own term, the mean of (1/rendered - 1/target)^2 (``losses.inverse_depth_loss``)."""
+    own term, the mean of (1/rendered - 1/target)^2."""
     if target.numel() == 0:
         return {"observations": 0}
     relative = (rendered - target).abs() / target
     return {"observations": int(target.numel()), "median_relative": float(relative.median()),
             "p90_relative": float(relative.quantile(0.9)), "above_10_percent": float((relative > 0.1).double().mean()),
-            "mean_inverse_depth_term": float(inverse_depth_loss(rendered, target))}
+            "mean_inverse_depth_term": float(inverse_depth_term(rendered, target).mean())}
 
 
 def agreement_by_depth(rendered: torch.Tensor, target: torch.Tensor, bins: int = 4) -> List[Dict[str, float]]:
@@ -27,7 +33,7 @@ def agreement_by_depth(rendered: torch.Tensor, target: torch.Tensor, bins: int =
     its depth range and its share of the summed L_sd term: in NDC a far point's relative depth is loosely held
     (the space is uniform in inverse depth), while L_sd's term, also in inverse depth, weighs it little."""
     order = torch.argsort(target)
-    total = float(inverse_depth_loss(rendered, target)) * target.numel()  # L_sd's term, summed
+    total = float(inverse_depth_term(rendered, target).sum())
     bands = []
     for chosen in torch.tensor_split(order, bins):
         if chosen.numel() == 0:
