@@ -170,6 +170,11 @@ class FrugalNeRFSettings(ModelConfig):
     sparse_depth_weight: float = 0.5
     """lambda_sd: MSE between inverse rendered and inverse sparse-point depth (metric), at every scale
     (LLFF / DTU 0.5, RealEstate 0.05); points come from the datamanager (--pipeline.datamanager.sparse-depth)."""
+    sparse_depth_weight_decay: Optional[float] = None
+    """lambda_sd at the last step over lambda_sd at the first, falling geometrically with the step; None: the
+    schedule of the other regularisers (loss_weight_decay, the reference code's). Not a paper setting: the
+    triangulated points stay closer to the scene than the rendered depth all through a short run, so a pull that
+    fades with the regularisers may let go of them while the full scale still moves."""
     mono_depth_weight: float = 0.01
     """lambda_d of the optional monocular depth loss (1 - Pearson correlation of rendered and predicted depth,
     every scale); active only with --pipeline.datamanager.mono-depth-model."""

@@ -121,6 +121,8 @@ class FrugalNeRFModel(Model):
         self.loss_schedule_factor = 1.0
         # Factor on lambda_geo (its own decay, geo_weight_decay), set with it.
         self.geo_schedule_factor = 1.0
+        # Factor on lambda_sd (sparse_depth_weight_decay, or the regularisers' decay), set with it.
+        self.sparse_schedule_factor = 1.0
         # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
         # scale map outside it (set_reference_views).
         self.reference_views: Optional[ReferenceViews] = None
@@ -325,7 +327,7 @@ class FrugalNeRFModel(Model):
         if isinstance(batch, TrainBatch):
             return objective.training_losses(
                 self.config, self.field, outputs["step"], batch, self.reference_views, decay, self.occlusion_active,
-                geo_factor=self.geo_schedule_factor,
+                geo_factor=self.geo_schedule_factor, sparse_factor=self.sparse_schedule_factor,
             )
         return objective.eval_losses(self.config, self.field, outputs, _check_batch(batch), self._eval_background(), decay)
 

@@ -115,9 +115,11 @@ def training_losses(
     decay: float,
     occlusion_active: bool,
     geo_factor: float = 1.0,
+    sparse_factor: Optional[float] = None,
 ) -> Dict[str, Tensor]:
     """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
-    lambda_geo (its schedule, geo_weight_decay)."""
+    lambda_geo (its schedule, geo_weight_decay), ``sparse_factor`` lambda_sd (None: ``decay``, as the other
+    regularisers)."""
     device = render.background.device
     target = target_rgb(batch.image.to(device), train_rows(render.background, batch))
     predictions = [scale.rgb[batch.train] for scale in render.scales]
@@ -138,7 +140,7 @@ def training_losses(
             losses.inverse_depth_loss(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
             for scale in range(len(render.scales))
         )
-        terms["sparse_depth"] = cfg.sparse_depth_weight * decay * sparse
+        terms["sparse_depth"] = cfg.sparse_depth_weight * (decay if sparse_factor is None else sparse_factor) * sparse
     if cfg.mono_depth_weight > 0 and batch.mono_depth is not None:  # L_d at every scale
         view = batch.indices[:, 0].to(device)
         mono = sum(losses.per_view_pearson_loss(d[batch.train], batch.mono_depth.to(device), view) for d in render.metric_depths)

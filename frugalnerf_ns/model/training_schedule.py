@@ -29,6 +29,7 @@ class ScheduledModel(Protocol):
     step: int
     loss_schedule_factor: float
     geo_schedule_factor: float
+    sparse_schedule_factor: float
 
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]: ...
 
@@ -81,6 +82,10 @@ def training_callbacks(model: ScheduledModel, training_callback_attributes: Trai
         if length is not None:
             model.loss_schedule_factor = losses.loss_weight_schedule(step, length, model.config.loss_weight_decay)
             model.geo_schedule_factor = losses.loss_weight_schedule(step, length, model.config.geo_weight_decay)
+            sparse_decay = model.config.sparse_depth_weight_decay
+            if sparse_decay is None:
+                sparse_decay = model.config.loss_weight_decay
+            model.sparse_schedule_factor = losses.loss_weight_schedule(step, length, sparse_decay)
 
     return [
         TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], follow_step),

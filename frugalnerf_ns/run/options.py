@@ -72,6 +72,11 @@ def option_problems(config: Any) -> List[str]:
     )
     need(_positive(model.loss_weight_decay), f"{m}.loss_weight_decay", "> 0 (1 keeps the weights constant)", model.loss_weight_decay)
     need(_positive(model.geo_weight_decay), f"{m}.geo_weight_decay", "> 0 (1 keeps lambda_geo constant)", model.geo_weight_decay)
+    if model.sparse_depth_weight_decay is not None:
+        need(
+            _positive(model.sparse_depth_weight_decay), f"{m}.sparse_depth_weight_decay",
+            "> 0 (1 keeps lambda_sd constant; None follows loss_weight_decay)", model.sparse_depth_weight_decay,
+        )
     for name, value in _fields_ending(model, "_weight"):
         need(_non_negative(value), f"{m}.{name}", ">= 0 and finite", value)
     k = dm.patch_size
