@@ -1,6 +1,7 @@
 """L_geo on a real FrugalDataManager batch: the model's losses, statistics and the training plot."""
 
 import json
+from contextlib import contextmanager
 
 import pytest
 import torch
@@ -196,7 +197,10 @@ def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):
         model.config.geo_weight = 0.01
 
 
-def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
+@contextmanager
+def loss_along_the_schedule(model_and_batch, term):
+    """A function of the step giving one loss term, with the model's loss-weight schedule set at that step (a
+    10-step run); the schedule is set back to step 0 afterwards."""
     from types import SimpleNamespace
 
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
@@ -206,63 +210,57 @@ def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
     attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)
     before = [c for c in model.get_training_callbacks(attrs) if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION in c.where_to_run]
 
-    def geo_loss_at(step):
+    def set_step(step):
         for callback in before:
             callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+
+    def loss_at(step):
+        set_step(step)
         torch.manual_seed(0)
         outputs = model(bundle)
-        return float(model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))["geo_loss"])
+        return float(model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))[term])
 
+    try:
+        yield loss_at
+    finally:
+        set_step(0)
+
+
+def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
+    model = model_and_batch[0]
     model.config.geo_weight_decay = 0.1
     try:
-        start, middle, end = geo_loss_at(0), geo_loss_at(5), geo_loss_at(10)
-        assert start > 0
-        assert middle == pytest.approx(0.1**0.5 * start, rel=1e-4)
-        assert end == pytest.approx(0.1 * start, rel=1e-4)
-        # The other decaying weights keep their own ratio (loss_weight_decay), not lambda_geo's.
-        assert model.loss_schedule_factor == pytest.approx(model.config.loss_weight_decay)
-        model.config.geo_weight_decay = 1.0
-        assert geo_loss_at(10) == pytest.approx(start, rel=1e-4)
+        with loss_along_the_schedule(model_and_batch, "geo_loss") as geo_loss_at:
+            start, middle, end = geo_loss_at(0), geo_loss_at(5), geo_loss_at(10)
+            assert start > 0
+            assert middle == pytest.approx(0.1**0.5 * start, rel=1e-4)
+            assert end == pytest.approx(0.1 * start, rel=1e-4)
+            # The other decaying weights keep their own ratio (loss_weight_decay), not lambda_geo's.
+            assert model.loss_schedule_factor == pytest.approx(model.config.loss_weight_decay)
+            model.config.geo_weight_decay = 1.0
+            assert geo_loss_at(10) == pytest.approx(start, rel=1e-4)
     finally:
         model.config.geo_weight_decay = 1.0
-        for callback in before:
-            callback.run_callback_at_location(0, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
 
 
 def test_sparse_depth_weight_decay_gives_lambda_sd_its_own_schedule(model_and_batch):
-    from types import SimpleNamespace
-
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
-
-    model, bundle, batch = model_and_batch
-    trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=10, steps_per_save=1000), base_dir=".")
-    attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)
-    before = [c for c in model.get_training_callbacks(attrs) if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION in c.where_to_run]
-
-    def sparse_loss_at(step):
-        for callback in before:
-            callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        torch.manual_seed(0)
-        outputs = model(bundle)
-        return float(model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))["sparse_depth"])
-
+    model = model_and_batch[0]
     decay = model.config.loss_weight_decay
     try:
-        # Unset: lambda_sd falls with the other regularisers.
-        start = sparse_loss_at(0)
-        assert start > 0
-        assert sparse_loss_at(10) == pytest.approx(decay * start, rel=1e-4)
-        # Its own factor: 1 keeps it constant, 0.5 halves it by the end, the others keep theirs.
-        model.config.sparse_depth_weight_decay = 1.0
-        assert sparse_loss_at(10) == pytest.approx(start, rel=1e-4)
-        model.config.sparse_depth_weight_decay = 0.5
-        assert sparse_loss_at(5) == pytest.approx(0.5**0.5 * start, rel=1e-4)
-        assert sparse_loss_at(10) == pytest.approx(0.5 * start, rel=1e-4)
-        assert model.loss_schedule_factor == pytest.approx(decay)
+        with loss_along_the_schedule(model_and_batch, "sparse_depth") as sparse_loss_at:
+            # Unset: lambda_sd falls with the other regularisers.
+            start = sparse_loss_at(0)
+            assert start > 0
+            assert sparse_loss_at(10) == pytest.approx(decay * start, rel=1e-4)
+            # Its own factor: 1 keeps it constant, 0.5 halves it by the end, the others keep theirs.
+            model.config.sparse_depth_weight_decay = 1.0
+            assert sparse_loss_at(10) == pytest.approx(start, rel=1e-4)
+            model.config.sparse_depth_weight_decay = 0.5
+            assert sparse_loss_at(5) == pytest.approx(0.5**0.5 * start, rel=1e-4)
+            assert sparse_loss_at(10) == pytest.approx(0.5 * start, rel=1e-4)
+            assert model.loss_schedule_factor == pytest.approx(decay)
     finally:
         model.config.sparse_depth_weight_decay = None
-        for callback in before:
-            callback.run_callback_at_location(0, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
 
 
 def test_geo_novel_weight_weighs_the_novel_rays_term_alone(model_and_batch):
