@@ -14,6 +14,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from frugalnerf_ns.geometry.reprojection import PseudoDepth
+from frugalnerf_ns.scoring.sparse_fit import inverse_depth_term
 
 
 def multiscale_color_loss(
@@ -169,7 +170,7 @@ def inverse_depth_loss(rendered: Float[Tensor, " rays"], target: Float[Tensor, "
     depths. Rendered depth is clamped at ``min_depth`` so an empty ray (depth ~0) cannot blow the loss up."""
     if rendered.numel() == 0:
         return rendered.sum() * 0.0
-    return torch.mean((1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2)
+    return torch.mean(inverse_depth_term(rendered, target, min_depth))
 
 
 def pearson_depth_loss(rendered: Float[Tensor, " rays"], predicted: Float[Tensor, " rays"], eps: float = 1e-8) -> Tensor:

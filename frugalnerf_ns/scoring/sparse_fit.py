@@ -8,12 +8,10 @@ from typing import Dict, List
 import torch
 
 
-
-def inverse_depth_term(rendered: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """L_sd's term per observation, (1/rendered - 1/target)^2 with depths clamped at 1e-3, as
-    ``model.losses.inverse_depth_loss`` averages it (scoring sits below the model and does not import it; a test
-    holds the two equal)."""
-    return (1.0 / rendered.clamp_min(1e-3) - 1.0 / target.clamp_min(1e-3)) ** 2
+def inverse_depth_term(rendered: torch.Tensor, target: torch.Tensor, min_depth: float = 1e-3) -> torch.Tensor:
+    """L_sd's term per observation (paper Eq. 11), (1/rendered - 1/target)^2 with depths clamped at ``min_depth``;
+    ``model.losses.inverse_depth_loss`` is its mean (here, below the model, so this diagnostic summary can read it)."""
+    return (1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2
 
 
 def depth_agreement(rendered: torch.Tensor, target: torch.Tensor) -> Dict[str, float]:
