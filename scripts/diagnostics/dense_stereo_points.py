@@ -30,12 +30,36 @@ triangulate_scenes = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(triangulate_scenes)
 
 
+def draw(image: np.ndarray, found: dict, path: Path) -> None:
+    """The image, then per source the image darkened with its view-0 observations as dots coloured by inverse depth."""
+    panels = [image]
+    for points in found.values():
+        mine = points.view == 0
+        uv = points.pixels[mine].round().long()
+        inverse = 1.0 / points.depth[mine]
+        t = ((inverse - inverse.min()) / (inverse.max() - inverse.min()).clamp_min(1e-9)).numpy()
+        colours = np.stack([255 * np.ones_like(t), 255 * t, 255 * (1 - t) * 0.3], -1).astype(np.uint8)  # red far, yellow near
+        canvas = (image * 0.35).astype(np.uint8)
+        height, width = image.shape[:2]
+        for dv in (0, 1):  # 2x2 dots: visible at the image's own size
+            for du in (0, 1):
+                u = (uv[:, 0] - du).clamp(0, width - 1).numpy()
+                v = (uv[:, 1] - dv).clamp(0, height - 1).numpy()
+                canvas[v, u] = colours
+        panels.append(canvas)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.concatenate(panels, axis=1)).save(path, quality=90)
+    print(f"drew {path}")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", nargs="+", default=["fern", "flower", "horns"], choices=sorted(triangulate_scenes.SCENES))
     parser.add_argument("--stereo", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="StereoOptions fields to change, e.g. min_ncc=0.95 plane_step_pixels=0.5")
     parser.add_argument("--out", type=Path, default=Path("outputs/dense_stereo.json"))
+    parser.add_argument("--draw", type=Path, default=None, help="folder for one picture per scene: the first training "
+                        "view, its SIFT observations, its stereo observations coloured by inverse depth (near: yellow)")
     args = parser.parse_args(argv)
     fields = {f.name: f.type for f in dataclasses.fields(StereoOptions)}
     changes = {}
@@ -63,6 +87,8 @@ def main(argv=None) -> None:
             start = time.time()
             found["plane-sweep stereo"] = (stereo_points(images, c2w, k, bounds, options, progress=False, stereo=stereo_options),
                                            time.time() - start)
+        if args.draw is not None:
+            draw(images[0], {source: points for source, (points, _) in found.items()}, args.draw / f"{name}_stereo_points.jpg")
         for source, (points, seconds) in found.items():
             rows.append({"scene": name, "source": source, "points": points.num_points, "observations": int(points.view.numel()),
                          "seconds": seconds, **triangulate_scenes.depth_agreement(points, outputs, k, config)})
