@@ -25,7 +25,7 @@ from frugalnerf_ns.geometry.plane_sweep import (
 )
 from frugalnerf_ns.geometry.reprojection import project_to_camera
 from tests.photo_scene import texture
-from tests.test_sparse_points import PLANE_Z, camera, intrinsics, render_plane
+from tests.plane_scene import PLANE_Z, camera, intrinsics, render_plane
 
 NEAR, FAR = 2.0, 4.0  # the plane lies ~3 units from both cameras
 ROWS, COLUMNS = slice(60, 180), slice(80, 240)  # the middle of render_plane's 320x240 (a quarter of the sweep's time)

@@ -73,10 +73,11 @@ class TriangulationOptions:
     """Each view is matched with this many nearest cameras (every pair when there are at most this + 1 views)."""
     dense_stereo: bool = False
     """Add plane-sweep stereo matches (``geometry/plane_sweep.py``) between each view and its nearest camera to
-    SIFT's points: every textured pixel whose match is unambiguous and passes the left-right check, not only
-    keypoints (fern 2-view: 5x the points of SIFT on 2x images, as close to the full capture's COLMAP points;
-    scripts/diagnostics/dense_stereo_points.py). The depth range is the scene's near/far bounds, else SIFT's
-    points' (without either, no stereo)."""
+    SIFT's points: every textured pixel whose match is sharp and passes the left-right check, not only keypoints
+    (fern 2-view: 8x the points of SIFT on 2x images, as close to the full capture's COLMAP points;
+    scripts/diagnostics/dense_stereo_points.py; trained with, fern and flower 2-view moved by ~0.1 dB either way,
+    docs/benchmarks.md). The depth range is the scene's near/far bounds, else SIFT's points' (without either, no
+    stereo)."""
 
     def key(self) -> Dict[str, float]:
         key = {k: float(v) for k, v in self.__dict__.items()}
@@ -221,9 +222,13 @@ def triangulate_tracks(
         depths.append((points[:, None] - centers[view]).norm(dim=-1).flatten())
         count += points.shape[0]
     if not kept_points:
-        empty = torch.zeros(0, dtype=dtype)
-        return SparseDepth(empty.reshape(0, 3), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), empty.reshape(0, 2), empty)
+        return no_points(dtype)
     return SparseDepth(torch.cat(kept_points), torch.cat(views), torch.cat(point_ids), torch.cat(pixels), torch.cat(depths))
+
+
+def no_points(dtype: torch.dtype) -> SparseDepth:
+    empty = torch.zeros(0, dtype=dtype)
+    return SparseDepth(empty.reshape(0, 3), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), empty.reshape(0, 2), empty)
 
 
 def points_inside_box(sparse: SparseDepth, aabb: Float[Tensor, "2 3"]) -> SparseDepth:
@@ -392,7 +397,6 @@ def stereo_points(
     """Plane-sweep matches between each view and its nearest camera, as two-view points: in both cameras' depth
     ``bounds`` (z) and seen under at least ``min_triangulation_angle`` degrees."""
     stereo = stereo or StereoOptions()
-
     pairs = neighbour_pairs(camera_to_worlds, 1)
     ticker = Progress(len(pairs), "frugalnerf sparse points: plane-sweep stereo", "pair", "pairs/s", 5.0, quiet_seconds=3.0) if progress else None
     found = []
@@ -419,8 +423,7 @@ def stereo_points(
 def concatenate(parts: Sequence[SparseDepth]) -> SparseDepth:
     """One set of points from several, point indices renumbered."""
     if not parts:
-        empty = torch.zeros(0, dtype=torch.float64)
-        return SparseDepth(empty.reshape(0, 3), torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long), empty.reshape(0, 2), empty)
+        return no_points(torch.float64)
     offsets = np.cumsum([0] + [p.num_points for p in parts])
     return SparseDepth(
         torch.cat([p.points for p in parts]), torch.cat([p.view for p in parts]),
