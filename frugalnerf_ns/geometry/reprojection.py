@@ -13,7 +13,7 @@ Colours are in [0, 1].
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -122,6 +122,19 @@ def warp_to_views(
     warp = sample_images(images, target_view, projection.pixels)
     valid = warp.valid & projection.in_front
     return Warp(torch.where(valid[:, None], warp.colors, torch.zeros_like(warp.colors)), valid)
+
+
+def downsample_views(
+    images: Float[Tensor, "views height width 3"], intrinsics: Float[Tensor, "views 4"], factor: int
+) -> Tuple[Float[Tensor, "views h w 3"], Float[Tensor, "views 4"]]:
+    """The views averaged over ``factor`` x ``factor`` blocks and their intrinsics for that size: a pixel
+    coordinate u of the full image is u / factor there (pixel centres at i + 0.5 in both), so warps into the
+    smaller image land where they would in the full one, blurred over the block. Rows and columns beyond the
+    last whole block are dropped (the intrinsics do not move: the image's top-left corner stays put)."""
+    if factor == 1:
+        return images, intrinsics
+    small = F.avg_pool2d(images.permute(0, 3, 1, 2), factor).permute(0, 2, 3, 1).contiguous()
+    return small, intrinsics / factor
 
 
 def patch_reprojection_error(

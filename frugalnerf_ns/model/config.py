@@ -155,6 +155,17 @@ class FrugalNeRFSettings(ModelConfig):
     reprojection_threshold: float = 0.5
     """Rays whose least reprojection error over the scales exceeds this are left out of L_geo (paper: 0.5;
     in colour units for rmse, i.e. the warped patch is off by half the colour range)."""
+    photometric_weight: float = 0.0
+    """Not a paper setting (0: off, every preset): weight of a photometric consistency term on the training
+    patches (``losses.photometric_consistency_loss``): each pixel carried at the full scale's rendered depth into
+    its nearest other training view should land on its own colour, with gradient through the depth. Compared at
+    the images' size and at each coarser level of ``photometric_levels`` (2x blocks each) so a depth a few pixels
+    off still sees a slope."""
+    photometric_levels: int = 3
+    """Image sizes the photometric term compares at: full, then 2x, 4x, ... averaged blocks."""
+    photometric_max_error: float = 0.2
+    """Patches whose warp at the coarsest level is off by more than this RMSE (colour units, Eq. 2's measure) or
+    leaves the other image are left out: occluded or unseen there, no depth explains them."""
     depth_smoothness_weight: float = 5e-3
     """Depth smoothness on novel-view 2x2 patches (LLFF 5e-3, DTU 50, RealEstate 0); lower scales / 16, 256."""
     occlusion_weight: float = 0.0

@@ -20,7 +20,9 @@ from frugalnerf_ns.geometry.novel_views import nearest_other_view
 from frugalnerf_ns.geometry.reprojection import (
     ErrorKind,
     Warp,
+    downsample_views,
     patch_reprojection_error,
+    sample_images,
     select_pseudo_depth,
     warp_to_views,
 )
@@ -101,6 +103,43 @@ def cross_scale_geometric_adaptation(
     )
     chosen = torch.where(pseudo.reliable, pseudo.scale, torch.full_like(pseudo.scale, -1))
     return AdaptationResult(loss_train, loss_novel, chosen)
+
+
+def photometric_consistency(
+    origins: Float[Tensor, "rays 3"],
+    directions: Float[Tensor, "rays 3"],
+    depth: Float[Tensor, " rays"],
+    own_view: Int[Tensor, " rays"],
+    own_pixels: Float[Tensor, "rays 2"],
+    nearest_view: Int[Tensor, " rays"],
+    patch_size: int,
+    images: Float[Tensor, "views height width 3"],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    levels: int,
+    max_error: float,
+) -> Float[Tensor, ""]:
+    """Not a paper term: ``losses.photometric_consistency_loss`` on patch-major training rays, averaged over
+    ``levels`` image sizes (full, then 2x, 4x, ... averaged blocks: a depth a few pixels off still sees a slope).
+
+    Each ray's point at ``depth`` (metric, with gradient) is warped into ``nearest_view`` and compared with its
+    own view's colour at ``own_pixels`` (u, v) at the same level. A patch counts when every pixel lands inside
+    the other image and its coarsest level's RMSE (Eq. 2's measure, detached) is at most ``max_error``: an
+    occluded or unseen patch has no depth that explains it, and would only be pulled somewhere wrong.
+    """
+    pixels = patch_size * patch_size
+    usable = (nearest_view >= 0).reshape(-1, pixels).all(dim=-1)
+    compared = []
+    for level in range(max(1, levels)):
+        factor = 2**level
+        level_images, level_intrinsics = downsample_views(images, intrinsics, factor)
+        warp = warp_to_views(origins, directions, depth, nearest_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
+        source = sample_images(level_images, own_view, own_pixels / factor).colors
+        compared.append((source.reshape(-1, pixels, 3), warp.colors.reshape(-1, pixels, 3), warp.valid.reshape(-1, pixels)))
+    source, warped, valid = compared[-1]
+    error = patch_reprojection_error(source.detach(), Warp(warped.detach(), valid), "rmse")
+    kept = usable & valid.all(dim=-1) & (error <= max_error)
+    return sum(losses.photometric_consistency_loss(s, w, kept) for s, w, _ in compared) / len(compared)
 
 
 # Colours of the viewer's "pseudo_gt_scale" output: full scale red, scale 1 blue, scale 2 green, scale 3

@@ -157,6 +157,21 @@ def geometric_adaptation_loss(
     return (squared * weight[None]).sum() / weight.sum().clamp_min(1.0)
 
 
+def photometric_consistency_loss(
+    source: Float[Tensor, "patches pixels 3"],
+    warped: Float[Tensor, "patches pixels 3"],
+    kept: Float[Tensor, " patches"],
+) -> Float[Tensor, ""]:
+    """Not a paper term: the L1 colour difference between training pixels and where their rendered depth
+    carries them in the nearest other training view (the warp of Eq. 2, with gradient through the depth),
+    averaged over the ``kept`` patches; 0 when none is kept. Self-supervised depth's photometric loss
+    (Monodepth) on the views a few-shot NeRF has: L_geo picks among the scales' depths by this error, this
+    term moves the full scale's depth down its gradient."""
+    weight = kept.to(source.dtype)
+    per_patch = (source - warped).abs().mean(dim=(-1, -2))
+    return (per_patch * weight).sum() / weight.sum().clamp_min(1.0)
+
+
 def depth_smoothness_loss(depth: Float[Tensor, "patches 2 2"]) -> Float[Tensor, ""]:
     """Patch-wise depth smoothness (supp. "Losses", RegNeRF): squared differences between horizontally and
     vertically adjacent depths of each 2x2 novel-view patch, averaged over patches."""

@@ -19,7 +19,11 @@ from torch.profiler import record_function
 from frugalnerf_ns.model import losses
 from frugalnerf_ns.model.batch import NOVEL_RAYS, SPARSE_RAYS, TRAIN_RAYS, EvalBatch, TrainBatch
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
-from frugalnerf_ns.model.geometric_adaptation import AdaptationResult, cross_scale_geometric_adaptation
+from frugalnerf_ns.model.geometric_adaptation import (
+    AdaptationResult,
+    cross_scale_geometric_adaptation,
+    photometric_consistency as photometric_consistency_loss,
+)
 from frugalnerf_ns.scoring.metrics import composite
 from frugalnerf_ns.model.rendering import StepRender
 
@@ -135,6 +139,9 @@ def training_losses(
         else:
             geo = train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel
         terms["geo_loss"] = geo_factor * geo
+    if cfg.photometric_weight > 0 and views is not None:
+        with record_function("photometric_consistency"):
+            terms["photometric"] = cfg.photometric_weight * photometric_consistency(cfg, render, batch, views)
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
         sparse = sum(
             losses.inverse_depth_loss(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
@@ -223,6 +230,22 @@ def novel_depth_smoothness(field_: FrugalNeRFField, render: StepRender, batch: T
         patches = depth[: batch.num_novel // 4 * 4].reshape(-1, 2, 2)
         total = total + losses.depth_smoothness_loss(patches) / field_.stride(scale) ** 2
     return total
+
+
+def photometric_consistency(
+    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: ReferenceViews
+) -> Float[Tensor, ""]:
+    """The photometric term (``geometric_adaptation.photometric_consistency``) on the step's training patches,
+    at the full scale's metric depth with gradient."""
+    rows = batch.train
+    depth = render.metric_depths[0][rows]
+    # The ray's own pixel centre (indices hold camera, row, column).
+    indices = batch.indices.to(depth.device)
+    return photometric_consistency_loss(
+        render.origins[rows], render.directions[rows], depth, indices[:, 0].long(),
+        indices[:, [2, 1]].to(depth.dtype) + 0.5, batch.nearest_view[rows], batch.patch_size,
+        views.images, views.camera_to_worlds, views.intrinsics, cfg.photometric_levels, cfg.photometric_max_error,
+    )
 
 
 def geo_weights(cfg: "FrugalNeRFSettings") -> Tuple[float, float]:

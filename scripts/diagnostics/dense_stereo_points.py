@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from frugalnerf_ns.data.sparse_points import TriangulationOptions, stereo_points, triangulate_training_views
+from frugalnerf_ns.data.sparse_points import TriangulationOptions, stereo_points, triangulate_training_views, z_depth_range
 from frugalnerf_ns.geometry.plane_sweep import StereoOptions
 
 HERE = Path(__file__).resolve().parent
@@ -50,6 +50,24 @@ def draw(image: np.ndarray, found: dict, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(panels, axis=1)).save(path, quality=90)
     print(f"drew {path}")
+
+
+def object_masks(config, outputs):
+    """The training views' object masks (DTU's ``mask/`` folder, in the order of ``image/``), else None."""
+    folder = Path(config.data) / "mask"
+    if not folder.is_dir():
+        return None
+    masks = sorted(folder.glob("*.png"))
+    names = sorted(f.name for f in Path(outputs.image_filenames[0]).parent.glob("*.png"))
+    return [np.asarray(Image.open(masks[names.index(Path(f).name)]).convert("L")) > 127 for f in outputs.image_filenames]
+
+
+def fraction_on_object(points, masks) -> float:
+    """The share of the observations whose pixel lies on the object (DTU: stereo matches off it are table or backdrop)."""
+    uv = points.pixels.round().long()
+    hits = [bool(masks[v][min(max(int(y), 0), masks[v].shape[0] - 1), min(max(int(x), 0), masks[v].shape[1] - 1)])
+            for v, (x, y) in zip(points.view.tolist(), uv.tolist())]
+    return float(np.mean(hits)) if hits else float("nan")
 
 
 def main(argv=None) -> None:
@@ -82,22 +100,29 @@ def main(argv=None) -> None:
         start = time.time()
         sift = triangulate_training_views(images, c2w, k, options, None if near_far is None else tuple(map(float, near_far)), progress=False)
         found = {"SIFT 2x": (sift, time.time() - start)}
-        bounds = tuple(map(float, near_far)) if near_far is not None else None
+        # As training picks it: the scene's near/far, else SIFT's points' z-depths widened (DTU).
+        bounds = tuple(map(float, near_far)) if near_far is not None else z_depth_range(sift, c2w, k)
         if bounds is not None:
             start = time.time()
             found["plane-sweep stereo"] = (stereo_points(images, c2w, k, bounds, options, progress=False, stereo=stereo_options),
                                            time.time() - start)
         if args.draw is not None:
             draw(images[0], {source: points for source, (points, _) in found.items()}, args.draw / f"{name}_stereo_points.jpg")
+        masks = object_masks(config, outputs)
         for source, (points, seconds) in found.items():
             rows.append({"scene": name, "source": source, "points": points.num_points, "observations": int(points.view.numel()),
-                         "seconds": seconds, **triangulate_scenes.depth_agreement(points, outputs, k, config)})
+                         "seconds": seconds, "depth_range": list(bounds) if bounds is not None else None,
+                         **triangulate_scenes.depth_agreement(points, outputs, k, config)})
+            if masks is not None:
+                rows[-1]["fraction_on_object"] = fraction_on_object(points, masks)
             print(rows[-1], flush=True)
     print("| scene | points from | points | seconds | compared with the full capture | median / p90 relative depth "
           "difference | above 10 % |\n|---|---|---|---|---|---|---|")
     for row in rows:
         agree = (f"{row['median_relative_depth_difference']:.3f} / {row['p90_relative_depth_difference']:.3f} | "
                  f"{row['fraction_above_10_percent']:.3f}") if row.get("compared") else " | "
+        if "fraction_on_object" in row:
+            agree += f" on the object mask: {row['fraction_on_object']:.2f}"
         print(f"| {row['scene']} | {row['source']} | {row['points']} | {row['seconds']:.1f} | {row.get('compared', '')} | {agree} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"stereo": dataclasses.asdict(stereo_options), "rows": rows}, indent=2))
