@@ -55,6 +55,9 @@ def bundled_ffmpeg_only(monkeypatch):
     assert provide_ffmpeg() is not None
 
 
+# The real ns-render binary (~19 s); test_render_spiral_script_prints_where_the_video_is renders a spiral with the
+# bundled ffmpeg in this process.
+@pytest.mark.e2e
 def test_ns_render_spiral_without_a_system_ffmpeg(trained_run, procedural_scene, tmp_path):
     _, run_dir = trained_run
     config = run_dir / "config.yml"

@@ -71,6 +71,8 @@ async def receive_frame(port: int, timeout: float = 180.0) -> Tuple[bytes, List[
     return frame, options, checkboxes
 
 
+# The real ns-viewer in a child process (~20 s); test_viewer_outputs_offer_every_scale_... renders in this process.
+@pytest.mark.e2e
 def test_viewer_serves_the_page_and_renders_a_frame_for_a_websocket_client(trained_run):
     _, run_dir = trained_run
     port = free_port()
