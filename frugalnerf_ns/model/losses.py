@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Optional, Sequence, Tuple
 
 import torch
-from jaxtyping import Float, Int
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from frugalnerf_ns.geometry.reprojection import PseudoDepth
@@ -160,7 +160,7 @@ def geometric_adaptation_loss(
 def photometric_consistency_loss(
     source: Float[Tensor, "patches pixels 3"],
     warped: Float[Tensor, "patches pixels 3"],
-    kept: Float[Tensor, " patches"],
+    kept: Bool[Tensor, " patches"],
 ) -> Float[Tensor, ""]:
     """Not a paper term: the L1 colour difference between training pixels and where their rendered depth
     carries them in the nearest other training view (the warp of Eq. 2, with gradient through the depth),
