@@ -46,6 +46,8 @@ def test_paper_preset_holds_the_paper_settings():
     assert model.num_lower_scales == 2 and model.downsample_ratio == 4
     assert model.distance_scale == 25.0 and model.density_activation == "relu"
     assert model.step_ratio == 0.5
+    # Not a paper term: the CPU presets' photometric consistency is off here.
+    assert model.photometric_weight == 0.0
     assert config.optimizers["encodings"]["optimizer"].lr == 0.08
     assert config.optimizers["encodings"]["optimizer"].betas == (0.9, 0.99)
     assert config.optimizers["fields"]["optimizer"].lr == 0.004
