@@ -284,6 +284,43 @@ def test_geo_novel_weight_weighs_the_novel_rays_term_alone(model_and_batch):
         model.config.geo_weight, model.config.geo_novel_weight = 0.01, None
 
 
+def test_the_novel_rays_photometric_term_reads_the_novel_rows_and_sends_gradients(model_and_batch):
+    from frugalnerf_ns.model.geometric_adaptation import novel_view_photometric_consistency
+
+    model, bundle, batch = model_and_batch
+    views = model.reference_views
+    assert batch.num_novel >= 4 and len(views.images) >= 2
+    try:
+        model.config.photometric_novel_weight = 0.5
+        model.config.photometric_max_error = 1.0  # an untrained field: keep every patch inside both images
+        torch.manual_seed(0)
+        outputs = model(bundle)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        term = loss_dict["photometric_novel"]
+        # The same number from the novel rows of the render: their full-scale depth, their nearest view and the
+        # training view nearest to the ray after it.
+        rows = batch.novel
+        render = outputs["step"]
+        centers = views.camera_to_worlds[:, :3, 3]
+        first = batch.nearest_view[rows]
+        second = nearest_other_view(render.origins[rows], centers, own_view=first)
+        assert bool((second != first).all() & (second >= 0).all())
+        expected = novel_view_photometric_consistency(
+            render.origins[rows], render.directions[rows], render.metric_depths[0][rows], first, second, 4,
+            views.images, views.camera_to_worlds, views.intrinsics, 3, 1.0)
+        assert float(term) == pytest.approx(0.5 * float(expected), rel=1e-5)
+        assert torch.isfinite(term) and float(term) > 0
+        model.zero_grad()
+        term.backward()
+        grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
+        assert grads and all(torch.isfinite(g).all() for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
+        model.config.photometric_novel_weight = 0.0
+        outputs = model(bundle)
+        assert "photometric_novel" not in model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+    finally:
+        model.config.photometric_novel_weight, model.config.photometric_max_error = 0.0, 0.2
+
+
 def test_rays_without_another_view_are_left_out():
     # One camera at the origin looking down -z; rays whose nearest view is -1 (a single training view).
     images = torch.rand(1, 8, 8, 3)

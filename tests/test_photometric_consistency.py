@@ -1,13 +1,13 @@
-"""The photometric consistency term (``geometric_adaptation.photometric_consistency``, off in every preset): the
-pyramid's pixel coordinates, the loss's minimum and gradient at the true depth of a textured plane, and the patches
-it leaves out."""
+"""The photometric consistency terms (``geometric_adaptation.photometric_consistency`` on training patches, on in the
+CPU presets; ``novel_view_photometric_consistency`` on novel rays, off in every preset): the pyramid's pixel
+coordinates, the losses' minimum and gradient at the true depth of a textured plane, and the patches they leave out."""
 
 import numpy as np
 import torch
 
 from frugalnerf_ns.geometry.reprojection import downsample_views, project_to_camera, sample_images
 from frugalnerf_ns.model import losses
-from frugalnerf_ns.model.geometric_adaptation import photometric_consistency
+from frugalnerf_ns.model.geometric_adaptation import novel_view_photometric_consistency, photometric_consistency
 from tests.photo_scene import texture
 from tests.plane_scene import FOCAL, HEIGHT, PLANE_Z, WIDTH, camera, intrinsics, render_plane
 
@@ -127,3 +127,57 @@ def test_the_loss_itself_averages_kept_patches_only():
     kept = torch.tensor([True, True, False])
     torch.testing.assert_close(losses.photometric_consistency_loss(source, warped, kept), torch.tensor(0.2))
     assert float(losses.photometric_consistency_loss(source, warped, torch.zeros(3, dtype=torch.bool))) == 0.0
+
+
+def novel_patch_rays(eye, corners):
+    """Rays of 2x2 patches (top-left pixels ``corners``, patch-major) of a camera at ``eye`` that is no training view,
+    and the metric distance along each unit ray to the plane."""
+    c2w = camera(eye).float()
+    dv, du = torch.meshgrid(torch.arange(2), torch.arange(2), indexing="ij")
+    pixels = torch.cat([torch.stack([left + du.flatten(), top + dv.flatten()], -1) for top, left in corners]).float() + 0.5
+    local = torch.stack([(pixels[:, 0] - WIDTH / 2) / FOCAL, -(pixels[:, 1] - HEIGHT / 2) / FOCAL, -torch.ones(len(pixels))], -1)
+    directions = local @ c2w[:3, :3].T
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    origins = c2w[:3, 3].expand_as(directions)
+    distance = (PLANE_Z - origins[:, 2] - 0.2 * origins[:, 0]) / (directions[:, 2] + 0.2 * directions[:, 0])
+    return origins, directions, distance
+
+
+NOVEL_EYE = (0.0, 0.03, 2.05)  # between the two views
+NOVEL_CORNERS = [(60 + 13 * i, 90 + 17 * j) for i in range(6) for j in range(6)]
+
+
+def novel_loss(depth, images, c2w, k, origins, directions, first=None, second=None, levels=3, max_error=0.3):
+    rays = len(depth)
+    first = torch.zeros(rays, dtype=torch.long) if first is None else first
+    second = torch.ones(rays, dtype=torch.long) if second is None else second
+    return novel_view_photometric_consistency(origins, directions, depth, first, second, 4, images, c2w, k, levels, max_error)
+
+
+def test_novel_rays_see_one_colour_in_both_views_at_the_true_depth_and_descend_to_it():
+    images, c2w, k = plane_views()
+    origins, directions, distance = novel_patch_rays(NOVEL_EYE, NOVEL_CORNERS)
+    at_truth = float(novel_loss(distance, images, c2w, k, origins, directions))
+    for relative in (0.97, 0.99, 1.01, 1.03):
+        depth = (distance * relative).requires_grad_(True)
+        loss = novel_loss(depth, images, c2w, k, origins, directions)
+        assert float(loss.detach()) > at_truth + 2e-4, relative
+        loss.backward()
+        assert float(depth.grad.sum()) * (relative - 1.0) > 0, relative
+    # The two views swapped: the same comparison, the same loss.
+    swapped = novel_loss(distance * 1.02, images, c2w, k, origins, directions, torch.ones(len(distance), dtype=torch.long),
+                         torch.zeros(len(distance), dtype=torch.long))
+    torch.testing.assert_close(swapped, novel_loss(distance * 1.02, images, c2w, k, origins, directions))
+
+
+def test_novel_patches_without_a_second_view_or_off_an_image_get_no_gradient():
+    images, c2w, k = plane_views()
+    origins, directions, distance = novel_patch_rays(NOVEL_EYE, NOVEL_CORNERS[:4])
+    second = torch.ones(len(distance), dtype=torch.long)
+    second[4:8] = -1  # patch 1: one training view only
+    depth = distance.clone()
+    depth[:4] = 0.05  # patch 0: a hair in front of the camera, off both images
+    depth.requires_grad_(True)
+    novel_loss(depth * 1.01, images, c2w, k, origins, directions, second=second).backward()
+    per_patch = depth.grad.abs().reshape(-1, 4).sum(-1)
+    assert per_patch[0] == 0 and per_patch[1] == 0 and bool((per_patch[2:] > 0).all()), per_patch

@@ -161,6 +161,11 @@ class FrugalNeRFSettings(ModelConfig):
     its nearest other training view should land on its own colour, with gradient through the depth. Compared at
     the images' size and at each coarser level of ``photometric_levels`` (2x blocks each) so a depth a few pixels
     off still sees a slope."""
+    photometric_novel_weight: float = 0.0
+    """Not a paper setting (0: off, every preset): the photometric term on the novel-view rays
+    (``geometric_adaptation.novel_view_photometric_consistency``): each 2x2 patch's points at the full scale's
+    rendered depth, warped into two training views, should show the same colour in both. Same levels and
+    ``photometric_max_error`` as the training patches' term."""
     photometric_levels: int = 3
     """Image sizes the photometric term compares at: full, then 2x, 4x, ... averaged blocks."""
     photometric_max_error: float = 0.2

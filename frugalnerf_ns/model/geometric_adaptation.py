@@ -130,12 +130,54 @@ def photometric_consistency(
     pixels = patch_size * patch_size
     usable = (nearest_view >= 0).reshape(-1, pixels).all(dim=-1)
     compared = []
-    for level in range(max(1, levels)):
-        factor = 2**level
-        level_images, level_intrinsics = downsample_views(images, intrinsics, factor)
+    for factor, level_images, level_intrinsics in view_pyramid(images, intrinsics, levels):
         warp = warp_to_views(origins, directions, depth, nearest_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
         source = sample_images(level_images, own_view, own_pixels / factor).colors
         compared.append((source.reshape(-1, pixels, 3), warp.colors.reshape(-1, pixels, 3), warp.valid.reshape(-1, pixels)))
+    return mean_over_levels(compared, usable, max_error)
+
+
+def novel_view_photometric_consistency(
+    origins: Float[Tensor, "rays 3"],
+    directions: Float[Tensor, "rays 3"],
+    depth: Float[Tensor, " rays"],
+    first_view: Int[Tensor, " rays"],
+    second_view: Int[Tensor, " rays"],
+    patch_pixels: int,
+    images: Float[Tensor, "views height width 3"],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    levels: int,
+    max_error: float,
+) -> Float[Tensor, ""]:
+    """Not a paper term: the photometric term on novel-view rays, in patches of ``patch_pixels`` consecutive rays
+    (the datamanager's 2x2 novel patches). A novel ray has no colour of its own, so its point at ``depth`` (metric,
+    with gradient) is warped into two training views, ``first_view`` and ``second_view``, and their colours there
+    should agree; the gradient reaches the depth through both warps. The training patches' term pins the depth
+    along the training rays; a floater that the training rays look past sits on the novel rays, where this one
+    sees it. Same pyramid and same patch rule as ``photometric_consistency`` (both warps inside their images,
+    coarsest level's RMSE at most ``max_error``: what one of the views does not see is left out)."""
+    usable = ((first_view >= 0) & (second_view >= 0)).reshape(-1, patch_pixels).all(dim=-1)
+    compared = []
+    for _, level_images, level_intrinsics in view_pyramid(images, intrinsics, levels):
+        first = warp_to_views(origins, directions, depth, first_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
+        second = warp_to_views(origins, directions, depth, second_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
+        compared.append((first.colors.reshape(-1, patch_pixels, 3), second.colors.reshape(-1, patch_pixels, 3),
+                         (first.valid & second.valid).reshape(-1, patch_pixels)))
+    return mean_over_levels(compared, usable, max_error)
+
+
+def view_pyramid(images: Float[Tensor, "views height width 3"], intrinsics: Float[Tensor, "views 4"], levels: int):
+    """(factor, images, intrinsics) at the images' size and each coarser level of 2x averaged blocks."""
+    for level in range(max(1, levels)):
+        factor = 2**level
+        yield (factor, *downsample_views(images, intrinsics, factor))
+
+
+def mean_over_levels(compared, usable: Tensor, max_error: float) -> Float[Tensor, ""]:
+    """``losses.photometric_consistency_loss`` averaged over the levels of ``compared`` ((source, warped, valid)
+    per level, patch-major), on the ``usable`` patches whose coarsest level warps inside the image with an RMSE
+    (Eq. 2's measure, detached) of at most ``max_error``."""
     source, warped, valid = compared[-1]
     error = patch_reprojection_error(source.detach(), Warp(warped.detach(), valid), "rmse")
     kept = usable & valid.all(dim=-1) & (error <= max_error)

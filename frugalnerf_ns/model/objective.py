@@ -22,8 +22,10 @@ from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import (
     AdaptationResult,
     cross_scale_geometric_adaptation,
+    novel_view_photometric_consistency,
     photometric_consistency as photometric_consistency_loss,
 )
+from frugalnerf_ns.geometry.novel_views import nearest_other_view
 from frugalnerf_ns.scoring.metrics import composite
 from frugalnerf_ns.model.rendering import StepRender
 
@@ -142,6 +144,9 @@ def training_losses(
     if cfg.photometric_weight > 0 and views is not None:
         with record_function("photometric_consistency"):
             terms["photometric"] = cfg.photometric_weight * photometric_consistency(cfg, render, batch, views)
+    if cfg.photometric_novel_weight > 0 and views is not None and batch.num_novel >= 4:
+        with record_function("photometric_consistency_novel"):
+            terms["photometric_novel"] = cfg.photometric_novel_weight * novel_photometric_consistency(cfg, render, batch, views)
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
         sparse = sum(
             losses.inverse_depth_loss(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
@@ -244,6 +249,23 @@ def photometric_consistency(
     return photometric_consistency_loss(
         render.origins[rows], render.directions[rows], depth, indices[:, 0].long(),
         indices[:, [2, 1]].to(depth.dtype) + 0.5, batch.nearest_view[rows], batch.patch_size,
+        views.images, views.camera_to_worlds, views.intrinsics, cfg.photometric_levels, cfg.photometric_max_error,
+    )
+
+
+def novel_photometric_consistency(
+    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: ReferenceViews
+) -> Float[Tensor, ""]:
+    """The photometric term on the step's novel-view rays (``geometric_adaptation.novel_view_photometric_consistency``)
+    at the full scale's metric depth with gradient: each 2x2 patch warped into its nearest training view and the
+    training view nearest to it after that."""
+    rows = slice(batch.novel.start, batch.novel.start + batch.num_novel // 4 * 4)
+    origins = render.origins[rows]
+    first = batch.nearest_view[rows].to(origins.device)
+    centers = views.camera_to_worlds[:, :3, 3].to(origins.dtype)
+    second = nearest_other_view(origins.detach(), centers, own_view=first).to(first.device)
+    return novel_view_photometric_consistency(
+        origins, render.directions[rows], render.metric_depths[0][rows], first, second, 4,
         views.images, views.camera_to_worlds, views.intrinsics, cfg.photometric_levels, cfg.photometric_max_error,
     )
 
