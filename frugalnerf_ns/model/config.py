@@ -166,6 +166,9 @@ class FrugalNeRFSettings(ModelConfig):
     (``geometric_adaptation.novel_view_photometric_consistency``): each 2x2 patch's points at the full scale's
     rendered depth, warped into two training views, should show the same colour in both. Same levels and
     ``photometric_max_error`` as the training patches' term."""
+    photometric_ssim_share: float = 0.0
+    """Not a paper setting (0: plain L1): the photometric terms' share of ``losses.patch_dissimilarity`` ((1 - SSIM)
+    / 2 over 3x3 blocks of each patch), the rest L1; Monodepth's 0.85."""
     photometric_levels: int = 3
     """Image sizes the photometric term compares at: full, then 2x, 4x, ... averaged blocks."""
     photometric_max_error: float = 0.2

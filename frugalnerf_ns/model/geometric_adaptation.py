@@ -118,6 +118,7 @@ def photometric_consistency(
     intrinsics: Float[Tensor, "views 4"],
     levels: int,
     max_error: float,
+    ssim_share: float = 0.0,
 ) -> Float[Tensor, ""]:
     """Not a paper term: ``losses.photometric_consistency_loss`` on patch-major training rays, averaged over
     ``levels`` image sizes (full, then 2x, 4x, ... averaged blocks: a depth a few pixels off still sees a slope).
@@ -134,7 +135,7 @@ def photometric_consistency(
         warp = warp_to_views(origins, directions, depth, nearest_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
         source = sample_images(level_images, own_view, own_pixels / factor).colors
         compared.append((source.reshape(-1, pixels, 3), warp.colors.reshape(-1, pixels, 3), warp.valid.reshape(-1, pixels)))
-    return mean_over_levels(compared, usable, max_error)
+    return mean_over_levels(compared, usable, max_error, ssim_share)
 
 
 def novel_view_photometric_consistency(
@@ -149,6 +150,7 @@ def novel_view_photometric_consistency(
     intrinsics: Float[Tensor, "views 4"],
     levels: int,
     max_error: float,
+    ssim_share: float = 0.0,
 ) -> Float[Tensor, ""]:
     """Not a paper term: the photometric term on novel-view rays, in patches of ``patch_pixels`` consecutive rays
     (the datamanager's 2x2 novel patches). A novel ray has no colour of its own, so its point at ``depth`` (metric,
@@ -164,7 +166,7 @@ def novel_view_photometric_consistency(
         second = warp_to_views(origins, directions, depth, second_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
         compared.append((first.colors.reshape(-1, patch_pixels, 3), second.colors.reshape(-1, patch_pixels, 3),
                          (first.valid & second.valid).reshape(-1, patch_pixels)))
-    return mean_over_levels(compared, usable, max_error)
+    return mean_over_levels(compared, usable, max_error, ssim_share)
 
 
 def view_pyramid(images: Float[Tensor, "views height width 3"], intrinsics: Float[Tensor, "views 4"], levels: int):
@@ -174,14 +176,14 @@ def view_pyramid(images: Float[Tensor, "views height width 3"], intrinsics: Floa
         yield (factor, *downsample_views(images, intrinsics, factor))
 
 
-def mean_over_levels(compared, usable: Tensor, max_error: float) -> Float[Tensor, ""]:
+def mean_over_levels(compared, usable: Tensor, max_error: float, ssim_share: float = 0.0) -> Float[Tensor, ""]:
     """``losses.photometric_consistency_loss`` averaged over the levels of ``compared`` ((source, warped, valid)
     per level, patch-major), on the ``usable`` patches whose coarsest level warps inside the image with an RMSE
-    (Eq. 2's measure, detached) of at most ``max_error``."""
+    (Eq. 2's measure, detached) of at most ``max_error``; ``ssim_share`` as in the loss."""
     source, warped, valid = compared[-1]
     error = patch_reprojection_error(source.detach(), Warp(warped.detach(), valid), "rmse")
     kept = usable & valid.all(dim=-1) & (error <= max_error)
-    return sum(losses.photometric_consistency_loss(s, w, kept) for s, w, _ in compared) / len(compared)
+    return sum(losses.photometric_consistency_loss(s, w, kept, ssim_share) for s, w, _ in compared) / len(compared)
 
 
 # Colours of the viewer's "pseudo_gt_scale" output: full scale red, scale 1 blue, scale 2 green, scale 3

@@ -250,6 +250,7 @@ def photometric_consistency(
         render.origins[rows], render.directions[rows], depth, indices[:, 0].long(),
         indices[:, [2, 1]].to(depth.dtype) + 0.5, batch.nearest_view[rows], batch.patch_size,
         views.images, views.camera_to_worlds, views.intrinsics, cfg.photometric_levels, cfg.photometric_max_error,
+        cfg.photometric_ssim_share,
     )
 
 
@@ -267,6 +268,7 @@ def novel_photometric_consistency(
     return novel_view_photometric_consistency(
         origins, render.directions[rows], render.metric_depths[0][rows], first, second, 4,
         views.images, views.camera_to_worlds, views.intrinsics, cfg.photometric_levels, cfg.photometric_max_error,
+        cfg.photometric_ssim_share,
     )
 
 
