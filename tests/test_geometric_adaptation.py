@@ -321,6 +321,42 @@ def test_the_novel_rays_photometric_term_reads_the_novel_rows_and_sends_gradient
         model.config.photometric_novel_weight, model.config.photometric_max_error = 0.0, 0.2
 
 
+def test_the_training_patches_photometric_term_passes_its_ssim_share(model_and_batch):
+    from frugalnerf_ns.model.geometric_adaptation import photometric_consistency
+
+    model, bundle, batch = model_and_batch
+    views = model.reference_views
+    try:
+        model.config.photometric_weight = 0.5
+        model.config.photometric_max_error = 1.0  # an untrained field: keep every patch inside the other image
+        rows = batch.train
+        terms = {}
+        for share in (0.0, 0.85):
+            model.config.photometric_ssim_share = share
+            torch.manual_seed(0)
+            outputs = model(bundle)
+            render = outputs["step"]
+            # An untrained field's depth lies just in front of its camera, outside the other views: read it at the
+            # distance to the scene's centre instead (the same value, the field's gradient).
+            depth = render.metric_depths[0]
+            render.metric_depths[0] = depth - depth.detach() + render.origins.detach().norm(dim=-1)
+            terms[share] = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))["photometric"]
+            indices = batch.indices.to(render.origins.device)
+            expected = photometric_consistency(
+                render.origins[rows], render.directions[rows], render.metric_depths[0][rows], indices[:, 0].long(),
+                indices[:, [2, 1]].float() + 0.5, batch.nearest_view[rows], batch.patch_size,
+                views.images, views.camera_to_worlds, views.intrinsics, 3, 1.0, share)
+            assert float(terms[share]) == pytest.approx(0.5 * float(expected), rel=1e-5)
+        assert float(terms[0.0]) > 0 and float(terms[0.85]) != pytest.approx(float(terms[0.0]), rel=1e-3)
+        model.zero_grad()
+        terms[0.85].backward()
+        grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
+        assert grads and all(torch.isfinite(g).all() for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
+    finally:
+        model.config.photometric_weight, model.config.photometric_max_error = 0.0, 0.2
+        model.config.photometric_ssim_share = 0.0
+
+
 def test_rays_without_another_view_are_left_out():
     # One camera at the origin looking down -z; rays whose nearest view is -1 (a single training view).
     images = torch.rand(1, 8, 8, 3)
