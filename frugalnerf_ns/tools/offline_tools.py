@@ -42,6 +42,29 @@ def patch_torchmetrics_lpips() -> None:
     lpip.LearnedPerceptualImagePatchSimilarity = OfflineLearnedPerceptualImagePatchSimilarity  # type: ignore
 
 
+def render_view(model, dataset, index: int):
+    """One view of ``dataset`` rendered whole, every output the model gives (on the CPU), with its camera, rays
+    and image as the evaluator scores it (RGBA on white): what the diagnostics scripts compare."""
+    from frugalnerf_ns.model.objective import target_rgb
+
+    camera = dataset.cameras[index : index + 1].to(model.device)
+    bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
+    with torch.no_grad():
+        outputs = {key: value.cpu() for key, value in model.get_outputs_for_camera_ray_bundle(bundle).items()}
+    return camera, bundle, outputs, target_rgb(dataset[index]["image"].float(), torch.ones(3))
+
+
+def training_views_at_depth(model, dataset, depth_key: str = "depth") -> list:
+    """(camera-to-world, [fx, fy, cx, cy], rendered depth, image) of every training view: where
+    ``geometry.visibility.training_view_coverage`` looks for a test pixel."""
+    views = []
+    for index in range(len(dataset)):
+        camera, _, outputs, image = render_view(model, dataset, index)
+        intrinsics = torch.tensor([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)])
+        views.append((camera.camera_to_worlds[0].cpu(), intrinsics, outputs[depth_key][..., 0], image))
+    return views
+
+
 def render_test_rgb(model, camera, mask: Optional[torch.Tensor]) -> torch.Tensor:
     """Rendered colour of one camera, [H, W, 3] in [0, 1].
 

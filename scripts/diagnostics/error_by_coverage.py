@@ -37,11 +37,10 @@ def main(argv=None) -> None:
 
     from frugalnerf_ns.geometry.reprojection import unproject_along_rays
     from frugalnerf_ns.geometry.visibility import training_view_coverage
-    from frugalnerf_ns.model.objective import target_rgb
     from frugalnerf_ns.scoring.coverage import GROUPS, summarise_coverage
-    from frugalnerf_ns.tools.offline_tools import patch_torchmetrics_lpips
+    from frugalnerf_ns.tools import offline_tools
 
-    patch_torchmetrics_lpips()
+    offline_tools.patch_torchmetrics_lpips()
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
     model = pipeline.model
     model.eval()
@@ -50,19 +49,10 @@ def main(argv=None) -> None:
     suffix = "" if args.scale == 0 else f"_scale{args.scale}"
 
     def render(dataset, index):
-        camera = dataset.cameras[index : index + 1].to(model.device)
-        bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
-        with torch.no_grad():
-            out = model.get_outputs_for_camera_ray_bundle(bundle)
-        image = target_rgb(dataset[index]["image"].float(), torch.ones(3))
-        return camera, bundle, out[f"rgb{suffix}"].clamp(0, 1).cpu(), out[f"depth{suffix}"].cpu()[..., 0], image
+        camera, bundle, out, image = offline_tools.render_view(model, dataset, index)
+        return camera, bundle, out[f"rgb{suffix}"].clamp(0, 1), out[f"depth{suffix}"][..., 0], image
 
-    training = []
-    for index in range(len(pipeline.datamanager.train_dataset)):
-        camera, _, _, depth, image = render(pipeline.datamanager.train_dataset, index)
-        c2w = camera.camera_to_worlds[0].cpu()
-        intr = torch.tensor([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)])
-        training.append((c2w, intr, depth, image))
+    training = offline_tools.training_views_at_depth(model, pipeline.datamanager.train_dataset, f"depth{suffix}")
 
     report = {"tolerance": args.tolerance, "scale": args.scale, "views": []}
     pooled = {"seen_by": [], "in_frustum": [], "squared": [], "warp_squared": []}

@@ -53,7 +53,6 @@ def main(argv=None) -> None:
 
     from frugalnerf_ns.geometry.reprojection import unproject_along_rays
     from frugalnerf_ns.geometry.visibility import training_view_coverage
-    from frugalnerf_ns.model.objective import target_rgb
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.tools import offline_tools
 
@@ -67,19 +66,11 @@ def main(argv=None) -> None:
     model.num_rendered_scales = num_scales
 
     def render(dataset, index):
-        camera = dataset.cameras[index : index + 1].to(model.device)
-        bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
-        with torch.no_grad():
-            outputs = model.get_outputs_for_camera_ray_bundle(bundle)
-        image = target_rgb(dataset[index]["image"].float(), torch.ones(3))
-        colours = [c.clamp(0, 1).cpu() for c in scale_colours(outputs, num_scales)]
-        return camera, bundle, colours, outputs["depth"].cpu()[..., 0], image
+        camera, bundle, outputs, image = offline_tools.render_view(model, dataset, index)
+        colours = [c.clamp(0, 1) for c in scale_colours(outputs, num_scales)]
+        return camera, bundle, colours, outputs["depth"][..., 0], image
 
-    training = []
-    for index in range(len(pipeline.datamanager.train_dataset)):
-        camera, _, _, depth, image = render(pipeline.datamanager.train_dataset, index)
-        intrinsics = torch.tensor([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)])
-        training.append((camera.camera_to_worlds[0].cpu(), intrinsics, depth, image))
+    training = offline_tools.training_views_at_depth(model, pipeline.datamanager.train_dataset)
 
     groups = {"unseen": lambda n: n == 0, "seen by 1": lambda n: n == 1, "seen by 2+": lambda n: n >= 2,
               "all": lambda n: n >= 0}
