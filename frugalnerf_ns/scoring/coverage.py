@@ -18,6 +18,11 @@ def psnr_of(sse: float, count: float) -> float:
     return -10.0 * math.log10(max(sse / count, 1e-10))
 
 
+def group_masks(seen_by: torch.Tensor) -> Dict[str, torch.Tensor]:
+    """Each of ``GROUPS`` as a mask over the pixels, from how many training views see each one."""
+    return {"unseen": seen_by == 0, "seen_by_1": seen_by == 1, "seen_by_2_or_more": seen_by >= 2}
+
+
 def summarise_coverage(seen_by: torch.Tensor, in_frustum: torch.Tensor, squared: torch.Tensor,
                        warp_squared: torch.Tensor) -> Dict[str, object]:
     """``seen_by`` and ``in_frustum`` per pixel, ``squared`` the render's and ``warp_squared`` the warped training
@@ -28,7 +33,7 @@ def summarise_coverage(seen_by: torch.Tensor, in_frustum: torch.Tensor, squared:
     pixels = seen_by.numel()
     channels = squared.shape[-1]
     total = float(squared.sum())
-    masks = {"unseen": seen_by == 0, "seen_by_1": seen_by == 1, "seen_by_2_or_more": seen_by >= 2}
+    masks = group_masks(seen_by)
     summary: Dict[str, object] = {"pixels": pixels, "psnr": psnr_of(total, pixels * channels),
                                   "in_any_frustum_fraction": float(in_frustum.float().mean())}
     for name in GROUPS:

@@ -36,10 +36,6 @@ def candidates(colours: List[torch.Tensor]) -> Dict[str, torch.Tensor]:
     return named
 
 
-def psnr_of(squared_sum: float, count: int) -> float:
-    return float(-10 * torch.log10(torch.tensor(squared_sum / max(count, 1))))
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", type=Path)
@@ -53,6 +49,7 @@ def main(argv=None) -> None:
 
     from frugalnerf_ns.geometry.reprojection import unproject_along_rays
     from frugalnerf_ns.geometry.visibility import training_view_coverage
+    from frugalnerf_ns.scoring.coverage import group_masks, psnr_of
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.tools import offline_tools
 
@@ -72,8 +69,7 @@ def main(argv=None) -> None:
 
     training = offline_tools.training_views_at_depth(model, pipeline.datamanager.train_dataset)
 
-    groups = {"unseen": lambda n: n == 0, "seen by 1": lambda n: n == 1, "seen by 2+": lambda n: n >= 2,
-              "all": lambda n: n >= 0}
+    groups = ("unseen", "seen_by_1", "seen_by_2_or_more", "all")
     pooled: Dict[str, Dict[str, float]] = {group: {} for group in groups}
     counts = dict.fromkeys(groups, 0)
     per_view: Dict[str, List[float]] = {}
@@ -87,8 +83,7 @@ def main(argv=None) -> None:
         errors["best scale per pixel"] = torch.stack([errors[f"scale{s}"] for s in range(num_scales)]).min(0).values
         for name, error in errors.items():
             per_view.setdefault(name, []).append(psnr_of(float(error.sum()), error.numel()))
-        for group, member in groups.items():
-            inside = member(seen_by)
+        for group, inside in (group_masks(seen_by) | {"all": torch.ones_like(seen_by, dtype=torch.bool)}).items():
             counts[group] += int(inside.sum())
             for name, error in errors.items():
                 pooled[group][name] = pooled[group].get(name, 0.0) + float(error[inside].sum())
