@@ -49,7 +49,7 @@ def main(argv=None) -> None:
 
     from frugalnerf_ns.geometry.reprojection import unproject_along_rays
     from frugalnerf_ns.geometry.visibility import training_view_coverage
-    from frugalnerf_ns.scoring.coverage import group_masks, psnr_of
+    from frugalnerf_ns.scoring.coverage import GROUPS, group_masks, psnr_of
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.tools import offline_tools
 
@@ -69,7 +69,7 @@ def main(argv=None) -> None:
 
     training = offline_tools.training_views_at_depth(model, pipeline.datamanager.train_dataset)
 
-    groups = ("unseen", "seen_by_1", "seen_by_2_or_more", "all")
+    groups = (*GROUPS, "all")
     pooled: Dict[str, Dict[str, float]] = {group: {} for group in groups}
     counts = dict.fromkeys(groups, 0)
     per_view: Dict[str, List[float]] = {}
