@@ -105,15 +105,42 @@ def test_rgba_targets_are_composited_on_the_render_background():
     assert torch.allclose(objective.target_rgb(image, torch.ones(3)), torch.tensor([[1.0, 0.5, 0.5]]))
 
 
-# spanning: False, True (every lower scale's view spans the box) or 1 (the 1/4 scale's only).
-@pytest.mark.parametrize("carry,spanning", [(False, False), (True, False), (False, True), (False, 1)])
-def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spanning):
+def scheduled_training(model, lr=0.01, schedule_steps=10):
+    """nerfstudio's optimisers (same lr and decay for grid and MLP) and the model's training callbacks, as the
+    trainer wires them, and a function that runs one training step with them."""
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
     from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 
     from frugalnerf_ns.run.presets import AdamBetasOptimizerConfig
 
+    pipeline = SimpleNamespace(get_param_groups=model.get_param_groups, model=model)
+    scheduler = ExponentialDecaySchedulerConfig(lr_final=lr / 100, max_steps=schedule_steps)
+    opt_config = {name: {"optimizer": AdamBetasOptimizerConfig(lr=lr), "scheduler": scheduler} for name in ("encodings", "fields")}
+    optimizers = Optimizers(opt_config, model.get_param_groups())
+    trainer = SimpleNamespace(
+        schedule_steps=schedule_steps, config=SimpleNamespace(max_num_iterations=schedule_steps, steps_per_save=1000), base_dir="."
+    )
+    attrs = TrainingCallbackAttributes(optimizers=optimizers, grad_scaler=None, pipeline=pipeline, trainer=trainer)
+    callbacks = model.get_training_callbacks(attrs)
+
+    def step(n):
+        model.train()
+        outputs = model.get_outputs(ray_bundle(32))
+        loss = sum(model.get_loss_dict(outputs, train_batch(torch.rand(32, 3))).values())
+        optimizers.zero_grad_all()
+        loss.backward()
+        optimizers.optimizer_step_all()
+        optimizers.scheduler_step_all(n)
+        for callback in callbacks:
+            callback.run_callback_at_location(n, location=callback.where_to_run[0])
+
+    return optimizers, step
+
+
+# spanning: False, True (every lower scale's view spans the box) or 1 (the 1/4 scale's only).
+@pytest.mark.parametrize("carry,spanning", [(False, False), (True, False), (False, True), (False, 1)])
+def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spanning):
     # Spanning needs a final grid past 2 x 16 + 1 entries to grow at all.
     spanning_options = {"scale_spanning_grid": bool(spanning)}
     if spanning:
@@ -122,25 +149,10 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spannin
     coarsest = model.config.downsample_ratio**model.config.num_lower_scales
     ratio = model.config.downsample_ratio
     resolutions = [model.field.density_grid.resolution_tuple]
-    pipeline = SimpleNamespace(get_param_groups=model.get_param_groups)
-    opt_config = {
-        name: {"optimizer": AdamBetasOptimizerConfig(lr=0.01), "scheduler": ExponentialDecaySchedulerConfig(max_steps=10)}
-        for name in ("encodings", "fields")
-    }
-    optimizers = Optimizers(opt_config, model.get_param_groups())
-    trainer = SimpleNamespace(schedule_steps=10, config=SimpleNamespace(max_num_iterations=10, steps_per_save=1000), base_dir=".")
-    attrs = TrainingCallbackAttributes(optimizers=optimizers, grad_scaler=None, pipeline=pipeline, trainer=trainer)
-    callbacks = model.get_training_callbacks(attrs)
+    optimizers, train_step = scheduled_training(model)
     start = model.field.density_grid.resolution_tuple
     for step in range(1, 6):
-        model.train()
-        outputs = model.get_outputs(ray_bundle(32))
-        loss = sum(model.get_loss_dict(outputs, train_batch(torch.rand(32, 3))).values())
-        optimizers.zero_grad_all()
-        loss.backward()
-        optimizers.optimizer_step_all()
-        for callback in callbacks:
-            callback.run_callback_at_location(step, location=callback.where_to_run[0])
+        train_step(step)
         resolutions.append(model.field.density_grid.resolution_tuple)
         if step in (2, 4):
             # The optimiser now holds the new tensors (a stale one would skip or break the step).
@@ -163,6 +175,31 @@ def test_callbacks_upsample_shrink_and_restart_the_grid_optimiser(carry, spannin
     assert (model.field.aabb[1] - model.field.aabb[0] <= 2.0 + 1e-5).all()
     model.eval()
     assert torch.isfinite(model.get_outputs(ray_bundle(16))["rgb"]).all()
+
+
+@pytest.mark.parametrize("restarts", [True, False])
+def test_grid_learning_rate_restarts_or_continues_its_decay(restarts):
+    # Grid and MLP share lr and decay here, and the MLP's optimiser is never recreated: without restarts the
+    # grid's learning rate must follow the MLP's at every step, upsampling steps included; with them it jumps
+    # back to its first value after each upsampling.
+    model = tiny_model(grid_lr_restarts=restarts)
+    optimizers, train_step = scheduled_training(model, lr=0.01)
+    upsampled = set()
+    for step in range(1, 7):
+        before = model.field.density_grid.resolution_tuple
+        train_step(step)
+        if model.field.density_grid.resolution_tuple != before:
+            upsampled.add(step)
+        grid_lr = optimizers.schedulers["encodings"].get_last_lr()[0]
+        mlp_lr = optimizers.schedulers["fields"].get_last_lr()[0]
+        assert optimizers.optimizers["encodings"].param_groups[0]["lr"] == pytest.approx(grid_lr)
+        if restarts and step in upsampled:
+            assert grid_lr == pytest.approx(0.01)
+        elif not restarts:
+            assert grid_lr == pytest.approx(mlp_lr, rel=1e-6)
+    assert upsampled and max(upsampled) < 6
+    # After the last upsampling the grid's rate sits at a fixed ratio to the MLP's: above it with restarts.
+    assert (grid_lr > 1.5 * mlp_lr) if restarts else grid_lr == pytest.approx(mlp_lr, rel=1e-6)
 
 
 def test_state_dict_round_trip_after_resolution_change():

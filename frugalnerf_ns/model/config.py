@@ -43,6 +43,11 @@ class FrugalNeRFSettings(ModelConfig):
     """At each upsampling (and shrink) resample the grid optimiser's Adam moments with the grid and continue
     from them. Off (the reference code): a fresh Adam, whose first steps move every grid entry with any
     gradient by about the learning rate (Adam's first step is lr * sign(gradient))."""
+    grid_lr_restarts: bool = True
+    """At each upsampling (and shrink) the grid's learning rate restarts at its first value and decays again over
+    the schedule's length (the reference code; TensoRF's lr_upsample_reset), so a run whose last upsampling is
+    half-way ends at lr * (lr_final / lr) ** 0.5. Off: the new optimiser takes the learning rate the run's decay
+    has reached (TensoRF's lr_upsample_reset 0), and the run ends at lr_final."""
     alpha_mask_at: Tuple[float, ...] = (0.2, 0.4)
     """When the occupancy (alpha) mask is recomputed, as fractions of the schedule (paper: steps 1000 and 2000
     of 5000); the box shrinks to it the first time."""

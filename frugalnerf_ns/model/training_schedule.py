@@ -10,6 +10,7 @@ from typing import List, Optional, Protocol, Tuple
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch.optim.lr_scheduler import LambdaLR
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.field.tensorial import OptimizerState
@@ -133,6 +134,7 @@ def _restart_grid_optimizer(attributes: TrainingCallbackAttributes, carried: Opt
         return
     config = optimizers.config["encodings"]
     params = pipeline.get_param_groups()["encodings"]
+    old_scheduler = optimizers.schedulers.get("encodings")
     optimizers.optimizers["encodings"] = config["optimizer"].setup(params=params)
     if carried:
         for param in params:
@@ -140,6 +142,17 @@ def _restart_grid_optimizer(attributes: TrainingCallbackAttributes, carried: Opt
                 optimizers.optimizers["encodings"].state[param] = carried[param]
     optimizers.parameters["encodings"] = params
     if config.get("scheduler"):
-        optimizers.schedulers["encodings"] = (
-            config["scheduler"].setup().get_scheduler(optimizer=optimizers.optimizers["encodings"], lr_init=config["optimizer"].lr)
-        )
+        scheduler = config["scheduler"].setup().get_scheduler(optimizer=optimizers.optimizers["encodings"], lr_init=config["optimizer"].lr)
+        if old_scheduler is not None and not pipeline.model.config.grid_lr_restarts:
+            continue_decay(scheduler, old_scheduler.last_epoch)
+        optimizers.schedulers["encodings"] = scheduler
+
+
+def continue_decay(scheduler: LambdaLR, step: int) -> None:
+    """Put a fresh scheduler (and its optimiser's learning rates) at ``step`` of its curve, as if it had run
+    from the start (``grid_lr_restarts`` off)."""
+    scheduler.last_epoch = step
+    lrs = [base * fn(step) for base, fn in zip(scheduler.base_lrs, scheduler.lr_lambdas)]
+    for group, lr in zip(scheduler.optimizer.param_groups, lrs):
+        group["lr"] = lr
+    scheduler._last_lr = lrs  # what get_last_lr() reports (nerfstudio logs it)
