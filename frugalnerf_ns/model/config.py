@@ -126,6 +126,12 @@ class FrugalNeRFSettings(ModelConfig):
     far_background_resolution: Tuple[int, int] = (32, 64)
     """Rows and columns (latitude x longitude) of the far background's map; coarse, so that it holds the far
     room's broad colours and not the object's detail."""
+    outer_space_resolution: int = 128
+    """With a far background: nodes per axis of the VM grids that hold the space beyond the box (the room around
+    a captured object) in contracted coordinates (``field/outer_space.py``); the direction map stays behind them,
+    at infinity. 0: the direction map alone (on the sphere of the sparse points beyond the box)."""
+    outer_space_samples: int = 32
+    """Samples per ray beyond the box, linear in disparity."""
     full_scale_color_weight: float = 1.0
     """Eq. 1 weight of the full-resolution colour loss."""
     lower_scale_color_weight: float = 10.0

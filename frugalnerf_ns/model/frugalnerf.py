@@ -20,6 +20,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes
 from nerfstudio.models.base_model import Model
+from nerfstudio.utils.rich_utils import CONSOLE
 from nerfstudio.viewer.viewer_elements import ViewerCheckbox
 from torch import Tensor
 from torch.nn import Parameter
@@ -29,6 +30,7 @@ from frugalnerf_ns.errors import UserError
 from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
+from frugalnerf_ns.field.outer_space import OuterSpace
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
     ScaleFractionHistory,
@@ -99,16 +101,23 @@ class FrugalNeRFModel(Model):
         # A box that holds only the near part of the scene (LLFF layout or photos, cameras converging on an
         # object) comes with a far background: a colour per direction for the rays that leave it.
         self.far_background: Optional[FarBackground] = None
+        self.outer_space: Optional[OuterSpace] = None
         if self.config.far_background and metadata.get("far_background"):
             # The sphere it lies on, when the datamanager's points beyond the box say how far it is.
             shell = scene.get("far_shell")
             centre, radius = (None, 0.0) if shell is None else (torch.as_tensor(shell[0]), float(shell[1]))
+            if self.config.outer_space_resolution > 0:
+                # The room as geometry beyond the box; the map behind it is at infinity (sky, far away).
+                self.outer_space = OuterSpace(aabb, self.config.outer_space_resolution,
+                                              num_samples=self.config.outer_space_samples)
+                centre, radius = None, 0.0
             self.far_background = FarBackground(tuple(self.config.far_background_resolution), centre, radius)
         # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
         # the module tree and out of every checkpoint.
         self.scorer = ImageScorer()
         self._register_load_state_dict_pre_hook(drop_metric_network_keys)
         self._register_load_state_dict_pre_hook(self._refuse_a_checkpoint_without_the_far_background)
+        self._register_load_state_dict_pre_hook(self._keep_a_checkpoint_without_the_outer_space)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
         # The geometric adaptation's scale fractions of every training step (recorded by get_metrics_dict),
@@ -199,10 +208,28 @@ class FrugalNeRFModel(Model):
         if not any(k.startswith(f"{prefix}far_background.") for k in state_dict):
             raise UserError(FAR_BACKGROUND_MISSING)
 
+    def _keep_a_checkpoint_without_the_outer_space(self, state_dict, prefix, *args) -> None:
+        """Loading hook: a run trained before the space beyond the box became geometry has only the direction
+        map (on its sphere). It loads as it was trained: this model's outer space is filled with its own initial
+        values and switched off (``OuterSpace.active``), the map keeps the checkpoint's sphere."""
+        if self.outer_space is None or not any(k.startswith(f"{prefix}field.") for k in state_dict):
+            return
+        if any(k.startswith(f"{prefix}outer_space.") for k in state_dict):
+            return
+        for key, value in self.outer_space.state_dict().items():
+            state_dict[f"{prefix}outer_space.{key}"] = value
+        state_dict[f"{prefix}outer_space.active"] = torch.tensor(False)
+        CONSOLE.print("this run was trained before the space beyond its box was modelled: it renders as trained, "
+                      "with the colour-by-direction map only")
+
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
-        # The far background is a texture like the grid's planes: it learns at their rate.
+        # The far background is a texture like the grid's planes: it learns at their rate, as do the outer grids.
         far = [] if self.far_background is None else list(self.far_background.parameters())
-        return {"encodings": self.field.grid_parameters() + far, "fields": self.field.network_parameters()}
+        outer_grids = outer_nets = []
+        if self.outer_space is not None:
+            outer_grids, outer_nets = self.outer_space.grid_parameters(), self.outer_space.network_parameters()
+        return {"encodings": self.field.grid_parameters() + far + outer_grids,
+                "fields": self.field.network_parameters() + outer_nets}
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
         return training_callbacks(self, training_callback_attributes)
@@ -229,7 +256,13 @@ class FrugalNeRFModel(Model):
             ndc_rays = rays_to_ndc(origins, directions, **self.ndc)
             origins, directions = ndc_rays.origins, ndc_rays.directions
         far_depth = None  # where each ray meets the far background's sphere (None: no sphere)
-        if self.far_background is not None:
+        outer = None  # the space beyond the box, rendered (None: not modelled)
+        if self.outer_space is not None and self.outer_space.is_active:
+            outer = self.outer_space.render(world_origins, world_directions, jitter=self.training)
+            # What the outer space lets through falls on the map at infinity.
+            far_map = self.far_background(world_origins, world_directions)  # type: ignore[misc]
+            background = outer.rgb + (1.0 - outer.accumulation[:, None]) * far_map
+        elif self.far_background is not None:
             far_depth = self.far_background.distance(world_origins, world_directions)
             background = self.far_background(world_origins, world_directions, far_depth)  # per ray, where it meets the map
         else:
@@ -264,6 +297,10 @@ class FrugalNeRFModel(Model):
                 if ndc_rays is not None:
                     # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
                     depth = metric_distance_from_ndc(depth, ndc_rays, self.ndc["near"])
+                if outer is not None:
+                    # The ray's whole depth: the box's share, then what it sees beyond (warps, L_sd, the viewer).
+                    accumulation = render.accumulation[:, 0].to(depth.dtype)
+                    depth = accumulation * depth + (1.0 - accumulation) * outer.depth.to(depth.dtype)
                 renders.append(render)
                 metric_depths.append(depth)
                 suffix = scale_suffix(scale)
@@ -325,10 +362,13 @@ class FrugalNeRFModel(Model):
     def get_loss_dict(self, outputs, batch: Union[TrainBatch, EvalBatch], metrics_dict=None) -> Dict[str, Tensor]:
         decay = self.loss_schedule_factor
         if isinstance(batch, TrainBatch):
-            return objective.training_losses(
+            terms = objective.training_losses(
                 self.config, self.field, outputs["step"], batch, self.reference_views, decay, self.occlusion_active,
                 geo_factor=self.geo_schedule_factor, sparse_factor=self.sparse_schedule_factor,
             )
+            if self.outer_space is not None and self.outer_space.is_active:
+                terms.update(objective.outer_space_regularizers(self.config, self.outer_space, decay))
+            return terms
         return objective.eval_losses(self.config, self.field, outputs, _check_batch(batch), self._eval_background(), decay)
 
     def get_rgba_image(self, outputs: Dict[str, Tensor], output_name: str = "rgb") -> Tensor:

@@ -18,6 +18,7 @@ from torch.profiler import record_function
 
 from frugalnerf_ns.model import losses
 from frugalnerf_ns.model.batch import NOVEL_RAYS, SPARSE_RAYS, TRAIN_RAYS, EvalBatch, TrainBatch
+from frugalnerf_ns.field.outer_space import OuterSpace
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import (
     AdaptationResult,
@@ -198,6 +199,21 @@ def grid_regularizers(cfg: "FrugalNeRFSettings", field_: FrugalNeRFField, decay:
             _add(terms, "tv_density", cfg.density_tv_weight * decay * factor * tv)
         if cfg.density_l1_weight > 0:
             _add(terms, "l1_density", cfg.density_l1_weight * factor * losses.density_l1_loss(density_planes, density_lines))
+    return terms
+
+
+def outer_space_regularizers(cfg: "FrugalNeRFSettings", outer: OuterSpace, decay: float) -> Dict[str, Tensor]:
+    """TV on the grids beyond the box, with the object grid's weights (the room seen from a few places needs the
+    same smoothness prior as the object)."""
+    terms: Dict[str, Tensor] = {}
+    if cfg.appearance_tv_weight > 0:
+        tv = losses.grid_tv_loss(outer.appearance_grid.planes, outer.appearance_grid.lines, cfg.tv_plane_weight,
+                                 cfg.tv_line_weight)
+        terms["tv_outer_appearance"] = cfg.appearance_tv_weight * decay * tv
+    if cfg.density_tv_weight > 0:
+        tv = losses.grid_tv_loss(outer.density_grid.planes, outer.density_grid.lines, cfg.tv_plane_weight,
+                                 cfg.tv_line_weight)
+        terms["tv_outer_density"] = cfg.density_tv_weight * decay * tv
     return terms
 
 

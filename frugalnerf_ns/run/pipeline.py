@@ -80,10 +80,20 @@ def scene_summary(datamanager, model) -> str:
                 f"on a sphere of radius {float(model.far_background.radius):.3g}, where the sparse points beyond the box lie"
                 if model.far_background.has_shell else "infinitely far"
             )
-            space += (
-                f" around the training cameras' focus; beyond it a learned far background ({rows}x{cols} colours by "
-                f"direction, {where}; --pipeline.model.far-background False: the fixed background)"
-            )
+            outer = getattr(model, "outer_space", None)
+            if outer is not None and outer.is_active:
+                side = outer.density_grid.resolution_tuple[0]
+                space += (
+                    " around the training cameras' focus (they converge on something in a larger space); beyond it "
+                    f"the room as geometry: {side}^3 VM grids over the contracted space (L-infinity, samples linear in "
+                    f"disparity), then {rows}x{cols} colours by direction at infinity "
+                    "(--pipeline.model.outer-space-resolution 0: the colour map alone)"
+                )
+            else:
+                space += (
+                    f" around the training cameras' focus; beyond it a learned far background ({rows}x{cols} colours by "
+                    f"direction, {where}; --pipeline.model.far-background False: the fixed background)"
+                )
     side = round(model.final_voxels ** (1 / 3))
     pixels = (model.kwargs.get("metadata") or {}).get("frugalnerf_scene", {}).get("num_train_pixels", 0)
     grid = f"{side}^3 final grid " + (
