@@ -1,4 +1,5 @@
-"""The learned far background of scenes whose box holds only their near part (pure torch, then in the model)."""
+"""The learned far background of scenes whose box holds only their near part (pure torch, then in the model), as the
+last layer alone (``outer_space_resolution`` 0); tests/test_outer_space.py has the space beyond the box in front of it."""
 
 import math
 
@@ -94,7 +95,7 @@ def bundle(origins, directions):
 def test_the_model_has_a_far_background_only_where_the_dataparser_asks_and_renders_it_behind_the_field():
     assert tiny_model().far_background is None
     assert tiny_model({"far_background": True}, far_background=False).far_background is None
-    plain, model = tiny_model(), tiny_model({"far_background": True})  # the same seeded field
+    plain, model = tiny_model(), tiny_model({"far_background": True}, outer_space_resolution=0)  # the same seeded field
     assert model.far_background is not None
     assert any(p is model.far_background.texture for p in model.get_param_groups()["encodings"])
     with torch.no_grad():
@@ -116,7 +117,7 @@ def test_the_model_has_a_far_background_only_where_the_dataparser_asks_and_rende
 
 
 def test_training_sends_gradient_to_the_far_background_and_a_checkpoint_restores_it():
-    model = tiny_model({"far_background": True})
+    model = tiny_model({"far_background": True}, outer_space_resolution=0)
     model.train()
     gen = torch.Generator().manual_seed(1)
     n = 64
@@ -129,11 +130,11 @@ def test_training_sends_gradient_to_the_far_background_and_a_checkpoint_restores
     assert model.far_background.texture.grad is not None and model.far_background.texture.grad.abs().sum() > 0
     with torch.no_grad():
         model.far_background.texture.add_(torch.randn_like(model.far_background.texture))
-    fresh = tiny_model({"far_background": True})
+    fresh = tiny_model({"far_background": True}, outer_space_resolution=0)
     fresh.load_state_dict(model.state_dict())
     assert torch.equal(fresh.far_background.texture, model.far_background.texture)
     # The sphere too: eval tools build the model without the datamanager's points, then load the checkpoint.
-    shell = tiny_model({"far_background": True, "frugalnerf_scene": {"far_shell": ([0.5, 0.0, -1.0], 4.0)}})
+    shell = tiny_model({"far_background": True, "frugalnerf_scene": {"far_shell": ([0.5, 0.0, -1.0], 4.0)}}, outer_space_resolution=0)
     fresh.load_state_dict(shell.state_dict())
     assert fresh.far_background.has_shell and float(fresh.far_background.radius) == 4.0
     assert fresh.far_background.centre.tolist() == [0.5, 0.0, -1.0]
@@ -150,7 +151,7 @@ def test_an_old_checkpoint_without_the_sphere_loads_with_the_background_infinite
 def accumulation_before_and_after_sparse_depth_steps(metadata, steps=30):
     """Mean accumulation of 4 sparse rays (from the box's centre, target depth 3) in a dense box of side 2,
     before and after ``steps`` Adam steps on L_sd alone."""
-    model = tiny_model(metadata, density_l1_weight=0.0, distortion_weight=0.0)
+    model = tiny_model(metadata, density_l1_weight=0.0, distortion_weight=0.0, outer_space_resolution=0)
     with torch.no_grad():  # a field that starts dense: every ray through the box is opaque
         for parameter in [*model.field.density_grid.planes, *model.field.density_grid.lines]:
             parameter.fill_(0.2)
@@ -264,7 +265,7 @@ def test_a_checkpoint_without_the_far_background_stops_loading_with_one_line(tmp
 
     # The model alone: a checkpoint of a model without a far background.
     with pytest.raises(UserError, match="has no far background.*set `ndc: true`"):
-        tiny_model({"far_background": True}).load_state_dict(tiny_model().state_dict())
+        tiny_model({"far_background": True}, outer_space_resolution=0).load_state_dict(tiny_model().state_dict())
 
     wide = [camera((x, 0.1 * i, 0.0), target=(0.0, 0.0, -1.8)) for i, x in enumerate((-0.7, 0.0, 0.7))]
     data = write_photos(tmp_path / "wide", wide)

@@ -39,7 +39,8 @@ class OuterRender(NamedTuple):
     """sum_i w_i c_i over the samples beyond the box (no direction map yet)."""
     accumulation: Float[Tensor, " rays"]
     depth: Float[Tensor, " rays"]
-    """sum_i w_i t_i + (1 - acc) t_end: metric distance of what the ray sees beyond the box."""
+    """1 / (sum_i w_i / t_i + (1 - acc) / t_end): metric distance of what the ray sees beyond the box (the expected
+    disparity's inverse)."""
 
 
 class OuterSpace(nn.Module):
@@ -50,7 +51,8 @@ class OuterSpace(nn.Module):
         box: the scene box, (2, 3): its centre and half sizes define the contraction.
         resolution: grid nodes per axis over [-2, 2] (a quarter of them span the box, unused).
         density_components, appearance_components: components per plane.
-        num_samples: samples per ray beyond the box.
+        num_samples: samples per ray behind the box (beyond its exit).
+        num_front_samples: samples per ray between a camera outside the box and the box.
     """
 
     def __init__(
@@ -60,6 +62,7 @@ class OuterSpace(nn.Module):
         density_components: int = 8,
         appearance_components: int = 8,
         num_samples: int = 32,
+        num_front_samples: int = 16,
     ) -> None:
         super().__init__()
         box = box.detach().float()
@@ -69,6 +72,7 @@ class OuterSpace(nn.Module):
         # False for a run trained before the outer space existed (its checkpoint has none): it renders as trained.
         self.register_buffer("active", torch.tensor(True))
         self.num_samples = int(num_samples)
+        self.num_front_samples = int(num_front_samples)
         self.density_grid = TensorVMGrid((resolution,) * 3, (density_components,) * 3)
         self.appearance_grid = TensorVMGrid((resolution,) * 3, (appearance_components,) * 3)
         self.color_basis = nn.Linear(self.appearance_grid.num_components, 3)
@@ -78,12 +82,17 @@ class OuterSpace(nn.Module):
     def is_active(self) -> bool:
         return bool(self.active)
 
-    def segment_start(self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"]) -> Float[Tensor, " rays"]:
-        """Where each ray leaves the box (a ray that misses it starts at the distance where it passes it: its
-        outside before that is not marched; the cameras of such captures stand inside the box)."""
-        segments = intersect_aabb(origins, directions, self.box, 0.0)
-        floor = 1e-3 * float(self.half_size.min())
-        return segments.t_far.clamp_min(floor)
+    def segments(self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], near: float) -> Tuple[Tensor, Tensor, Tensor]:
+        """Per ray, where the outside in front of the box ends (``t_in``: the box's entry, ``near`` for a camera
+        inside it), where the outside behind it starts (``t_out``: the box's exit), and ``near``'s floor. A ray that
+        misses the box has t_in = t_out at its closest approach to the box's centre: its outside is marched in
+        front of that point and behind it."""
+        segments = intersect_aabb(origins, directions, self.box, near)
+        closest = ((self.centre - origins) * directions).sum(dim=-1).clamp_min(near)
+        t_in = torch.where(segments.hit, segments.t_near, closest)
+        t_out = torch.where(segments.hit, segments.t_far, closest)
+        floor = max(near, 1e-3 * float(self.half_size.min()))
+        return t_in, t_out.clamp_min(floor), torch.full_like(t_in, near)
 
     def _grid_coords(self, points: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
         return contract(points, self.centre, self.half_size) / 2.0  # [-2, 2] to the grid's [-1, 1]
@@ -114,15 +123,12 @@ class OuterSpace(nn.Module):
         values = trilinear_rows(self._baked_nodes(), dims, (self._grid_coords(points) + 1.0) * 0.5 * (size - 1))
         return F.relu(values[:, 0]), torch.sigmoid(values[:, 1:])
 
-    def render(
-        self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], jitter: bool
-    ) -> OuterRender:
-        """Composite the samples beyond the box along each ray (unit ``directions``)."""
+    def _composite(
+        self, origins: Tensor, directions: Tensor, edges: Tensor, t: Tensor
+    ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Weights, accumulation, colour sum and disparity sum of samples ``t`` in bins ``edges`` along each ray;
+        each sample's share of the ray is its bin's length in the contracted space."""
         rays = origins.shape[0]
-        t_start = self.segment_start(origins, directions)
-        t_end = torch.maximum(torch.full_like(t_start, FAR_BOX_HALVES * float(self.half_size.max())), 2.0 * t_start)
-        edges, t = disparity_bins(t_start, t_end, self.num_samples, jitter)
-        # Each sample's share of the ray: its bin's length in the contracted space (equal in disparity, ~equal here).
         edge_points = contract(origins[:, None, :] + directions[:, None, :] * edges[..., None], self.centre, self.half_size)
         deltas = (edge_points[:, 1:] - edge_points[:, :-1]).norm(dim=-1)
         points = (origins[:, None, :] + directions[:, None, :] * t[..., None]).reshape(-1, 3)
@@ -134,9 +140,29 @@ class OuterSpace(nn.Module):
         optical = (density * deltas * OUTER_DISTANCE_SCALE).clamp(0.0, MAX_OPTICAL_DEPTH)
         weights, _ = transmittance_weights(optical)
         accumulation = weights.sum(dim=-1)
-        rgb = (weights[..., None] * color).sum(dim=-2)
-        depth = (weights * t).sum(dim=-1) + (1.0 - accumulation) * t_end
-        return OuterRender(rgb, accumulation, depth)
+        return weights, accumulation, (weights[..., None] * color).sum(dim=-2), (weights / t).sum(dim=-1)
+
+    def render(
+        self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], jitter: bool, near: float = 0.0
+    ) -> Tuple[OuterRender, OuterRender]:
+        """Composite the outside in front of the box (cameras outside it; ``num_front_samples`` evenly in t) and
+        behind it (``num_samples``, linear in disparity to ``FAR_BOX_HALVES`` box halves) along each ray (unit
+        ``directions``): (front, behind). The front's depth is its disparity sum's inverse (infinite where it is
+        empty); the behind's counts what it lets through at its far end."""
+        t_in, t_out, t_near = self.segments(origins, directions, near)
+        far = torch.maximum(torch.full_like(t_out, FAR_BOX_HALVES * float(self.half_size.max())), 2.0 * t_out)
+        edges, t = disparity_bins(t_out, far, self.num_samples, jitter)
+        _, acc, rgb, disparity = self._composite(origins, directions, edges, t)
+        # Expected disparity, not distance: the share a ray lets through to the map sits at 1000 box halves, where
+        # a distance average would let 5 % of it move the depth by 50 box halves.
+        behind = OuterRender(rgb, acc, 1.0 / (disparity + (1.0 - acc) / far))
+        u = torch.linspace(0.0, 1.0, self.num_front_samples + 1, device=t_in.device, dtype=t_in.dtype)
+        front_edges = t_near[:, None] + (t_in - t_near)[:, None] * u[None, :]
+        offset = torch.rand_like(front_edges[:, 1:]) if jitter else torch.full_like(front_edges[:, 1:], 0.5)
+        front_t = (front_edges[:, :-1] + offset * (front_edges[:, 1:] - front_edges[:, :-1])).clamp_min(1e-6)
+        _, acc, rgb, disparity = self._composite(origins, directions, front_edges, front_t)
+        front = OuterRender(rgb, acc, 1.0 / disparity.clamp_min(1e-12))
+        return front, behind
 
     def grid_parameters(self):
         return list(self.density_grid.parameters()) + list(self.appearance_grid.parameters())

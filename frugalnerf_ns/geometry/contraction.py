@@ -49,7 +49,8 @@ def disparity_bins(
     bin edges (increasing t, ``num_samples + 1``) and the samples' distances."""
     u = torch.linspace(0.0, 1.0, num_samples + 1, device=t_start.device, dtype=t_start.dtype)
     near, far = 1.0 / t_start[:, None], 1.0 / t_end[:, None]
-    edges = 1.0 / (near + (far - near) * u[None, :])
+    # (1 - u) near + u far, not near + u (far - near): the last edge is exactly t_end (near - near cancels).
+    edges = 1.0 / (near * (1.0 - u[None, :]) + far * u[None, :])
     if jitter:
         offset = torch.rand(t_start.shape[0], num_samples, device=u.device, dtype=u.dtype)
     else:

@@ -30,7 +30,7 @@ from frugalnerf_ns.errors import UserError
 from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
-from frugalnerf_ns.field.outer_space import OuterSpace
+from frugalnerf_ns.field.outer_space import OuterRender, OuterSpace
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
     ScaleFractionHistory,
@@ -256,12 +256,12 @@ class FrugalNeRFModel(Model):
             ndc_rays = rays_to_ndc(origins, directions, **self.ndc)
             origins, directions = ndc_rays.origins, ndc_rays.directions
         far_depth = None  # where each ray meets the far background's sphere (None: no sphere)
-        outer = None  # the space beyond the box, rendered (None: not modelled)
+        front = behind = None  # the space outside the box in front of it and behind it (None: not modelled)
         if self.outer_space is not None and self.outer_space.is_active:
-            outer = self.outer_space.render(world_origins, world_directions, jitter=self.training)
-            # What the outer space lets through falls on the map at infinity.
+            front, behind = self.outer_space.render(world_origins, world_directions, self.training, self.config.near_plane)
+            # Behind the box: the outside, then what it lets through falls on the map at infinity.
             far_map = self.far_background(world_origins, world_directions)  # type: ignore[misc]
-            background = outer.rgb + (1.0 - outer.accumulation[:, None]) * far_map
+            background = behind.rgb + (1.0 - behind.accumulation[:, None]) * far_map
         elif self.far_background is not None:
             far_depth = self.far_background.distance(world_origins, world_directions)
             background = self.far_background(world_origins, world_directions, far_depth)  # per ray, where it meets the map
@@ -297,10 +297,10 @@ class FrugalNeRFModel(Model):
                 if ndc_rays is not None:
                     # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
                     depth = metric_distance_from_ndc(depth, ndc_rays, self.ndc["near"])
-                if outer is not None:
-                    # The ray's whole depth: the box's share, then what it sees beyond (warps, L_sd, the viewer).
-                    accumulation = render.accumulation[:, 0].to(depth.dtype)
-                    depth = accumulation * depth + (1.0 - accumulation) * outer.depth.to(depth.dtype)
+                if front is not None and behind is not None:
+                    # The whole ray: the outside in front of the box, the box, the outside behind it.
+                    depth = depth_through_outer_space(front, render.accumulation[:, 0], depth, behind)
+                    render = render._replace(rgb=front.rgb + (1.0 - front.accumulation[:, None]) * render.rgb)
                 renders.append(render)
                 metric_depths.append(depth)
                 suffix = scale_suffix(scale)
@@ -387,6 +387,19 @@ class FrugalNeRFModel(Model):
         mask = batch.get("eval_mask")
         return self.scorer.metrics_and_images(outputs, image, None if mask is None else mask.to(self.device),
                                               self.field.num_scales)
+
+
+def depth_through_outer_space(
+    front: OuterRender, accumulation: Tensor, box_depth: Tensor, behind: OuterRender
+) -> Tensor:
+    """A ray's whole depth where the space outside the box is modelled (warps, L_sd, the viewer): the outside in
+    front of the box, the box's share of what it lets through and the outside behind, composited in disparity as
+    the outer space composites its own samples (``OuterSpace.render``):
+    1 / depth = 1 / d_front + (1 - acc_front) (acc / d_box + (1 - acc) / d_behind)."""
+    dtype = box_depth.dtype
+    accumulation, through = accumulation.to(dtype), 1.0 - front.accumulation.to(dtype)
+    inside = accumulation / box_depth.clamp_min(1e-6) + (1.0 - accumulation) / behind.depth.to(dtype)
+    return 1.0 / (1.0 / front.depth.to(dtype) + through * inside)
 
 
 FAR_BACKGROUND_MISSING = (
