@@ -90,7 +90,7 @@ def test_outer_render_is_bounded_and_its_fast_read_equals_the_planes():
         fast = space.render(origins, directions, jitter=False)  # baked node table
     slow = space.render(origins, directions, jitter=False)  # the planes, with gradient
     for part_fast, part_slow in zip(fast, slow):
-        for a, b in zip(part_fast, part_slow):
+        for a, b in zip(part_fast[:3], part_slow[:3]):  # colour, accumulation, depth (distortion: training only)
             assert torch.allclose(a, b.detach(), rtol=1e-4, atol=1e-4)
     front, behind = slow
     for part in (front, behind):

@@ -92,9 +92,10 @@ def training_view_points(
     if shell is not None:
         centre, radius = shell
         CONSOLE.print(
-            f"frugalnerf: the far background lies on a sphere of radius {radius:.3g} around the box's centre (the "
-            "median distance of the sparse points beyond the box; --pipeline.datamanager.far-background-shell False: "
-            "infinitely far)."
+            f"frugalnerf: the sparse points beyond the box lie at a median {radius:.3g} from its centre: they supervise "
+            "the depth of what lies there, and where the colour map is the only layer beyond the box "
+            "(--pipeline.model.outer-space-resolution 0) it lies on a sphere of that radius "
+            "(--pipeline.datamanager.far-background-shell False: neither)."
         )
         sparse = usable_points(every, None, min_points, CONSOLE.print, f"{how} (in and beyond the box)")
         return (None if sparse is None else _on(sparse, device)), (centre.tolist(), radius)

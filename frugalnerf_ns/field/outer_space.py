@@ -23,7 +23,7 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from frugalnerf_ns.field.tensorial import TensorVMGrid, trilinear_rows
-from frugalnerf_ns.geometry.contraction import contract, disparity_bins
+from frugalnerf_ns.geometry.contraction import contract, disparity_bins, interval_distortion
 from frugalnerf_ns.geometry.raymarch import MAX_OPTICAL_DEPTH, intersect_aabb, transmittance_weights
 
 FAR_BOX_HALVES = 1000.0
@@ -41,6 +41,8 @@ class OuterRender(NamedTuple):
     depth: Float[Tensor, " rays"]
     """1 / (sum_i w_i / t_i + (1 - acc) / t_end): metric distance of what the ray sees beyond the box (the expected
     disparity's inverse)."""
+    distortion: Float[Tensor, " rays"]
+    """``interval_distortion`` of the segment's weights (a training loss against floaters)."""
 
 
 class OuterSpace(nn.Module):
@@ -142,6 +144,10 @@ class OuterSpace(nn.Module):
         accumulation = weights.sum(dim=-1)
         return weights, accumulation, (weights[..., None] * color).sum(dim=-2), (weights / t).sum(dim=-1)
 
+    @staticmethod
+    def _distortion(weights: Tensor) -> Tensor:
+        return interval_distortion(weights) if torch.is_grad_enabled() else weights.new_zeros(weights.shape[0])
+
     def render(
         self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], jitter: bool, near: float = 0.0
     ) -> Tuple[OuterRender, OuterRender]:
@@ -152,16 +158,16 @@ class OuterSpace(nn.Module):
         t_in, t_out, t_near = self.segments(origins, directions, near)
         far = torch.maximum(torch.full_like(t_out, FAR_BOX_HALVES * float(self.half_size.max())), 2.0 * t_out)
         edges, t = disparity_bins(t_out, far, self.num_samples, jitter)
-        _, acc, rgb, disparity = self._composite(origins, directions, edges, t)
+        weights, acc, rgb, disparity = self._composite(origins, directions, edges, t)
         # Expected disparity, not distance: the share a ray lets through to the map sits at 1000 box halves, where
         # a distance average would let 5 % of it move the depth by 50 box halves.
-        behind = OuterRender(rgb, acc, 1.0 / (disparity + (1.0 - acc) / far))
+        behind = OuterRender(rgb, acc, 1.0 / (disparity + (1.0 - acc) / far), self._distortion(weights))
         u = torch.linspace(0.0, 1.0, self.num_front_samples + 1, device=t_in.device, dtype=t_in.dtype)
         front_edges = t_near[:, None] + (t_in - t_near)[:, None] * u[None, :]
         offset = torch.rand_like(front_edges[:, 1:]) if jitter else torch.full_like(front_edges[:, 1:], 0.5)
         front_t = (front_edges[:, :-1] + offset * (front_edges[:, 1:] - front_edges[:, :-1])).clamp_min(1e-6)
-        _, acc, rgb, disparity = self._composite(origins, directions, front_edges, front_t)
-        front = OuterRender(rgb, acc, 1.0 / disparity.clamp_min(1e-12))
+        weights, acc, rgb, disparity = self._composite(origins, directions, front_edges, front_t)
+        front = OuterRender(rgb, acc, 1.0 / disparity.clamp_min(1e-12), self._distortion(weights))
         return front, behind
 
     def grid_parameters(self):

@@ -309,7 +309,9 @@ class FrugalNeRFModel(Model):
                 outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
         if self.training:
             # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
-            outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths, far_depth)
+            outer_distortion = None if front is None else (front.distortion + behind.distortion).mean()  # type: ignore[union-attr]
+            outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths, far_depth,
+                                         outer_distortion=outer_distortion)
         elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
             chosen = pseudo_ground_truth_scale(
                 world_origins, world_directions, torch.stack(metric_depths), outputs["rgb"].reshape(-1, 3),
@@ -368,6 +370,9 @@ class FrugalNeRFModel(Model):
             )
             if self.outer_space is not None and self.outer_space.is_active:
                 terms.update(objective.outer_space_regularizers(self.config, self.outer_space, decay))
+                distortion = outputs["step"].outer_distortion
+                if self.config.outer_distortion_weight > 0 and distortion is not None:
+                    terms["outer_distortion"] = self.config.outer_distortion_weight * distortion
             return terms
         return objective.eval_losses(self.config, self.field, outputs, _check_batch(batch), self._eval_background(), decay)
 

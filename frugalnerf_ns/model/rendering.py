@@ -273,5 +273,7 @@ class StepRender:
     background_depth: Optional[Float[Tensor, " rays"]] = None
     """Metric distance along each ray to the far background's sphere (None: no sphere); L_sd composites it
     behind the field's depth (``depth_through_box``)."""
+    outer_distortion: Optional[Tensor] = None
+    """Mean distortion of the samples outside the box (``OuterRender.distortion``; None: no outer space)."""
     adaptation: Optional[AdaptationResult] = field(default=None)
     """Cross-scale geometric adaptation of this step, computed once (metrics and losses share it)."""

@@ -4,8 +4,8 @@
 torchmetrics' LPIPS (which tensorf and nerfacto build at start-up and which downloads AlexNet) is replaced
 by the offline LPIPS of this package, so baselines train on a machine without network.
 
-``python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [--per-view]``: renders the test views of a
-trained run and prints PSNR / SSIM / LPIPS as JSON (with ``--per-view``, each view's line first), computed by
+``python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [--per-view] [--training-views]``: renders the
+test views (or its training views) of a trained run and prints PSNR / SSIM / LPIPS as JSON (with ``--per-view``, each view's line first), computed by
 one piece of code for every method, with the DTU object masks when the dataparser provides them (so baselines
 are scored on the paper's protocol too).
 """
@@ -108,10 +108,13 @@ def score_test_view(pipeline, dataset, index: int, lpips) -> Dict[str, float]:
     return masked_image_metrics(rgb, image, mask.to(rgb.device), ssim, lpips)
 
 
-def evaluate_run(config_path: Path, step: Optional[int] = None, print_views: bool = False) -> Dict[str, float]:
+def evaluate_run(
+    config_path: Path, step: Optional[int] = None, print_views: bool = False, training_views: bool = False
+) -> Dict[str, float]:
     """Test-view PSNR / SSIM / LPIPS of a trained run (masked where the dataparser gives eval masks), at its
     latest checkpoint or at the checkpoint of ``step``; with ``print_views``, one ``VIEW {json}`` line per test
-    view first (its image name and scores: which views a change helped)."""
+    view first (its image name and scores: which views a change helped); with ``training_views``, the same of
+    the views it was trained on (how well the run fits its own photos)."""
     from nerfstudio.utils.eval_utils import eval_setup
 
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
@@ -122,7 +125,7 @@ def evaluate_run(config_path: Path, step: Optional[int] = None, print_views: boo
         return config
 
     _, pipeline, _, _ = eval_setup(config_path, test_mode="test", update_config_callback=at_step if step is not None else None)
-    dataset = pipeline.datamanager.eval_dataset
+    dataset = pipeline.datamanager.train_dataset if training_views else pipeline.datamanager.eval_dataset
     lpips = OfflineLPIPS().to(pipeline.device)
     per_view: List[Dict[str, float]] = []
     pipeline.eval()
@@ -156,9 +159,10 @@ def main() -> None:
         sys.argv = ["ns-train", *rest]
         entrypoint()
     else:
-        usage = "usage: python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [step ...] [--per-view]"
-        print_views = "--per-view" in rest
-        rest = [arg for arg in rest if arg != "--per-view"]
+        usage = ("usage: python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml [step ...] [--per-view] "
+                 "[--training-views]")
+        print_views, training_views = "--per-view" in rest, "--training-views" in rest
+        rest = [arg for arg in rest if arg not in ("--per-view", "--training-views")]
         if not rest or rest[0] in ("-h", "--help"):
             sys.exit(usage)
         if not Path(rest[0]).is_file():
@@ -168,7 +172,8 @@ def main() -> None:
         # One line per checkpoint step asked for (the latest without steps), in one process: nerfstudio's
         # start-up costs more than scoring a few small test views.
         for step in [int(s) for s in rest[1:]] or [None]:
-            print("RESULT " + json.dumps(evaluate_run(Path(rest[0]), step, print_views) | {"step": step}), flush=True)
+            scores = evaluate_run(Path(rest[0]), step, print_views, training_views)
+            print("RESULT " + json.dumps(scores | {"step": step}), flush=True)
 
 
 if __name__ == "__main__":

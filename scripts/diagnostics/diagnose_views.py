@@ -28,13 +28,14 @@ def depth_picture(depth: torch.Tensor, lo: float, hi: float) -> np.ndarray:
     return (value.expand(*depth.shape[:2], 3).numpy() * 255).astype(np.uint8)
 
 
-def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tensor]) -> tuple:
+def score_view(model, dataset, index: int, kind: str, mask: Optional[torch.Tensor], max_scales: int = 0) -> tuple:
     from frugalnerf_ns.scoring.metrics import capped_psnr, masked_psnr
 
     camera = dataset.cameras[index : index + 1].to(model.device)
     bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
     # Every scale (outside the viewer the model renders only the full scale unless asked).
     num_scales = getattr(getattr(model, "field", None), "num_scales", 1)
+    num_scales = min(num_scales, max_scales) if max_scales > 0 else num_scales
     if hasattr(model, "num_rendered_scales"):
         model.num_rendered_scales = num_scales
     with torch.no_grad():
@@ -91,6 +92,7 @@ def main(argv=None) -> None:
     parser.add_argument("--masks", type=Path, default=None,
                         help="object masks for views the dataparser gives none (DTU training views: <scene>/mask)")
     parser.add_argument("--out", type=Path, default=None, help="folder for the pictures (default: <run>/diagnosis)")
+    parser.add_argument("--scales", type=int, default=0, help="render this many scales (1: the full scale only; 0: all)")
     args = parser.parse_args(argv)
     if not args.config.is_file():
         raise SystemExit(f"diagnose_views: error: {args.config} is not a file (pass <run>/config.yml)")
@@ -112,7 +114,7 @@ def main(argv=None) -> None:
         for index in positions:
             mask = dataset[index].get("eval_mask")
             mask = mask[..., 0] if mask is not None else object_mask(args.masks, dataset.image_filenames[index])
-            view_rows, picture = score_view(model, dataset, index, kind, mask)
+            view_rows, picture = score_view(model, dataset, index, kind, mask, args.scales)
             rows += view_rows
             name = Path(dataset.image_filenames[index]).stem
             Image.fromarray(picture).save(out / f"{kind}-{name}.png")
