@@ -7,7 +7,7 @@ import torch
 from nerfstudio.cameras.rays import RayBundle
 
 from frugalnerf_ns.field.outer_space import FAR_BOX_HALVES, OuterSpace
-from frugalnerf_ns.geometry.contraction import contract, disparity_bins, uncontract
+from frugalnerf_ns.geometry.contraction import contract, disparity_bins, interval_distortion, uncontract
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from tests.helpers import tiny_model
 
@@ -44,6 +44,18 @@ def test_samples_beyond_the_box_are_ordered_in_their_bins_and_equal_in_disparity
     assert bool((edges[:, 1:] > edges[:, :-1]).all() and (t > edges[:, :-1]).all() and (t < edges[:, 1:]).all())
     steps = (1 / edges[:, :-1]) - (1 / edges[:, 1:])
     assert torch.allclose(steps, steps[:, :1].expand_as(steps), rtol=1e-4)
+
+
+def test_interval_distortion_is_the_double_sum_and_lowest_for_one_surface():
+    gen = torch.Generator().manual_seed(4)
+    weights = torch.rand(5, 12, generator=gen, dtype=torch.float64) / 12
+    mids = (torch.arange(12, dtype=torch.float64) + 0.5) / 12
+    brute = (weights[:, :, None] * weights[:, None, :] * (mids[:, None] - mids[None, :]).abs()).sum(dim=(1, 2))
+    brute = brute + (weights**2).sum(dim=-1) / (3 * 12)
+    assert torch.allclose(interval_distortion(weights), brute, rtol=1e-12)
+    surface, fog = torch.zeros(1, 12, dtype=torch.float64), torch.full((1, 12), 0.9 / 12, dtype=torch.float64)
+    surface[0, 7] = 0.9  # the same accumulation in one bin or spread over all of them
+    assert float(interval_distortion(surface)) < 0.1 * float(interval_distortion(fog))
 
 
 def outer(resolution=16, samples=24, seed=0):
@@ -221,3 +233,22 @@ def test_a_box_in_front_of_a_wall_trained_from_three_views_puts_the_wall_at_its_
     assert float(wall_error) < 0.15, f"wall depth off by {float(wall_error):.0%} (median)"
     assert float(depth[~on_cube].median()) > 3.0  # behind the box, not a shell on its faces
     assert float((depth[on_cube] - true_depth[on_cube]).abs().median()) < 0.3
+
+
+def test_an_optimiser_saved_before_the_outer_grids_loads_into_one_with_them():
+    from frugalnerf_ns.run.trainer import with_new_parameters
+
+    a, b, c = (torch.nn.Parameter(torch.randn(3)) for _ in range(3))
+    old = torch.optim.Adam([a, b], lr=0.1)
+    (a.sum() + 2 * b.sum()).backward()
+    old.step()
+    saved = {"encodings": old.state_dict()}
+    new = torch.optim.Adam([a, b, c], lr=0.1)
+    with pytest.raises(ValueError):
+        new.load_state_dict(saved["encodings"])  # what nerfstudio's loader would hit
+    new.load_state_dict(with_new_parameters(saved, {"encodings": new})["encodings"])
+    assert torch.equal(new.state[a]["exp_avg"], old.state[a]["exp_avg"]) and torch.equal(new.state[b]["exp_avg_sq"],
+                                                                                        old.state[b]["exp_avg_sq"])
+    assert c not in new.state  # fresh moments for the new parameters
+    same = torch.optim.Adam([a, b], lr=0.1)
+    assert with_new_parameters(saved, {"encodings": same}) == saved  # nothing added: unchanged

@@ -162,6 +162,9 @@ class OuterSpace(nn.Module):
         # Expected disparity, not distance: the share a ray lets through to the map sits at 1000 box halves, where
         # a distance average would let 5 % of it move the depth by 50 box halves.
         behind = OuterRender(rgb, acc, 1.0 / (disparity + (1.0 - acc) / far), self._distortion(weights))
+        if self.num_front_samples <= 0:  # the space in front of the box left empty
+            zero = t_in.new_zeros(t_in.shape[0])
+            return OuterRender(origins.new_zeros(origins.shape[0], 3), zero, torch.full_like(zero, 1e12), zero), behind
         u = torch.linspace(0.0, 1.0, self.num_front_samples + 1, device=t_in.device, dtype=t_in.dtype)
         front_edges = t_near[:, None] + (t_in - t_near)[:, None] * u[None, :]
         offset = torch.rand_like(front_edges[:, 1:]) if jitter else torch.full_like(front_edges[:, 1:], 0.5)

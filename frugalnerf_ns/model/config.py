@@ -132,6 +132,8 @@ class FrugalNeRFSettings(ModelConfig):
     at infinity. 0: the direction map alone (on the sphere of the sparse points beyond the box)."""
     outer_space_samples: int = 32
     """Samples per ray beyond the box, linear in disparity."""
+    outer_space_front_samples: int = 16
+    """Samples per ray between a camera outside the box and the box, evenly in distance (0: that space is empty)."""
     outer_distortion_weight: float = 0.01
     """mip-NeRF 360's distortion loss on the samples outside the box (its weight, 0.01), in front of and behind it:
     a ray's weight there in one place, not spread as fog or floaters in front of the cameras."""

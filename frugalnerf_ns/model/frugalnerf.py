@@ -109,7 +109,8 @@ class FrugalNeRFModel(Model):
             if self.config.outer_space_resolution > 0:
                 # The room as geometry beyond the box; the map behind it is at infinity (sky, far away).
                 self.outer_space = OuterSpace(aabb, self.config.outer_space_resolution,
-                                              num_samples=self.config.outer_space_samples)
+                                              num_samples=self.config.outer_space_samples,
+                                              num_front_samples=self.config.outer_space_front_samples)
                 centre, radius = None, 0.0
             self.far_background = FarBackground(tuple(self.config.far_background_resolution), centre, radius)
         # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of

@@ -106,6 +106,31 @@ def remove_config_only_run_folder(run_dir: Path, output_dir: Path) -> bool:
     return True
 
 
+def with_new_parameters(saved: Dict[str, Any], optimizers: Dict[str, Any]) -> Dict[str, Any]:
+    """The optimisers' saved state, made loadable where this version added parameters at the end of a group (a run
+    trained before the space beyond its box was modelled has no outer grids): the new ones start with fresh Adam
+    moments (torch would refuse a group of another size). A group that lost parameters is left to torch's error."""
+    fixed = {}
+    for name, state in saved.items():
+        optimizer = optimizers.get(name)
+        groups = state.get("param_groups", []) if isinstance(state, dict) else []
+        if optimizer is None or len(groups) != len(optimizer.param_groups):
+            fixed[name] = state
+            continue
+        new_groups, next_id, added = [], 1 + max((i for g in groups for i in g["params"]), default=-1), 0
+        for group, current in zip(groups, optimizer.param_groups):
+            missing = len(current["params"]) - len(group["params"])
+            if missing > 0:
+                group = {**group, "params": list(group["params"]) + list(range(next_id, next_id + missing))}
+                next_id, added = next_id + missing, added + missing
+            new_groups.append(group)
+        if added:
+            CONSOLE.print(f"frugalnerf: the checkpoint's {name!r} optimiser has {added} parameter tensors fewer than this "
+                          "version's model (made since it was saved): they start with fresh optimiser state")
+        fixed[name] = {**state, "param_groups": new_groups}
+    return fixed
+
+
 class FrugalTrainer(Trainer):
     config: FrugalTrainerConfig
 
@@ -180,7 +205,7 @@ class FrugalTrainer(Trainer):
         self._resume = None  # loaded once; the state is not kept around
         self._start_step = state["step"] + 1
         self.pipeline.load_pipeline(state["pipeline"], state["step"])
-        self.optimizers.load_optimizers(state["optimizers"])
+        self.optimizers.load_optimizers(with_new_parameters(state["optimizers"], self.optimizers.optimizers))
         if "schedulers" in state and cfg.load_scheduler:
             self.optimizers.load_schedulers(state["schedulers"])
         self.grad_scaler.load_state_dict(state["scalers"])
