@@ -23,8 +23,10 @@ from frugalnerf_ns.model.objective import target_rgb
 
 
 def depth_picture(depth: torch.Tensor, lo: float, hi: float) -> np.ndarray:
-    """Depth as grey levels between fixed bounds (near: bright), the same bounds for every scale."""
-    value = ((hi - depth) / max(hi - lo, 1e-6)).clamp(0, 1)
+    """Depth as grey levels between fixed bounds (near: bright), the same bounds for every scale; linear in
+    disparity (1 / depth), so a scene whose rays run out to a far room or to infinity keeps its near range."""
+    lo, hi = max(lo, 1e-6), max(hi, lo + 1e-6)
+    value = ((1.0 / depth.clamp_min(1e-6) - 1.0 / hi) / (1.0 / lo - 1.0 / hi)).clamp(0, 1)
     return (value.expand(*depth.shape[:2], 3).numpy() * 255).astype(np.uint8)
 
 
