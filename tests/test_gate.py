@@ -18,13 +18,15 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_repository_gate_covers_every_scene_with_its_cpu_preset():
     scenes_file, scenes = gate.load_gate(ROOT / "configs" / "gate.yaml")
     by_label = {s.label: s for s in scenes}
-    assert set(by_label) == {"fern-2v", "fern-3v", "flower-2v", "horns-2v", "dtu_scan65-2v", "juice_box-3v", "juice_box-4v"}
+    assert set(by_label) == {"fern-2v", "fern-3v", "flower-2v", "horns-2v", "dtu_scan65-2v", "juice_box-3v", "juice_box-4v",
+                             "bird-3v"}
     assert len(by_label["horns-2v"].seeds) >= 2 and by_label["horns-2v"].max_spread is not None
     specs = gate.gate_specs(scenes_file, scenes)
     methods = {label: {s.method for s in group} for label, group in specs.items()}
     assert methods == {"fern-2v": {"frugalnerf-cpu"}, "fern-3v": {"frugalnerf-cpu"}, "flower-2v": {"frugalnerf-cpu"},
                        "horns-2v": {"frugalnerf-cpu"}, "dtu_scan65-2v": {"frugalnerf-dtu-cpu"},
-                       "juice_box-3v": {"frugalnerf-cpu"}, "juice_box-4v": {"frugalnerf-cpu"}}
+                       "juice_box-3v": {"frugalnerf-cpu"}, "juice_box-4v": {"frugalnerf-cpu"},
+                       "bird-3v": {"frugalnerf-cpu"}}
     assert specs["fern-3v"][0].parser_args[-2:] == ["--num-train-views", "3"]
     horns = specs["horns-2v"]
     assert [s.seed for s in horns] == by_label["horns-2v"].seeds
@@ -36,7 +38,9 @@ def test_repository_gate_covers_every_scene_with_its_cpu_preset():
     assert len(by_label["juice_box-3v"].seeds) >= 2
     # the wide split: four frames from across the arc, the LLFF default test list
     assert specs["juice_box-4v"][0].parser_args[-5:] == ["--train-views", "45", "13", "29", "46"]
-    assert len({s.key for group in specs.values() for s in group}) == 9
+    # the full circle: frames between the training views as tests
+    assert specs["bird-3v"][0].parser_args[-9:] == ["--train-views", "0", "23", "46", "--test-views", "8", "15", "31", "38"]
+    assert len({s.key for group in specs.values() for s in group}) == 10
 
 
 def _scene(max_spread=None, seeds=(1, 2)):
