@@ -162,7 +162,9 @@ class OuterSpace(nn.Module):
         # Expected disparity, not distance: the share a ray lets through to the map sits at 1000 box halves, where
         # a distance average would let 5 % of it move the depth by 50 box halves.
         behind = OuterRender(rgb, acc, 1.0 / (disparity + (1.0 - acc) / far), self._distortion(weights))
-        if self.num_front_samples <= 0:  # the space in front of the box left empty
+        # No space in front of the box (the option, or every camera inside it, as with the default box): its
+        # samples would all weigh 0, so the grid reads of the training hot path are skipped.
+        if self.num_front_samples <= 0 or not bool((t_in > t_near).any()):
             zero = t_in.new_zeros(t_in.shape[0])
             return OuterRender(origins.new_zeros(origins.shape[0], 3), zero, torch.full_like(zero, 1e12), zero), behind
         u = torch.linspace(0.0, 1.0, self.num_front_samples + 1, device=t_in.device, dtype=t_in.dtype)
