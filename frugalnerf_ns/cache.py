@@ -7,18 +7,35 @@ import hashlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Callable, Dict, Optional, Sequence, Tuple
+from typing import BinaryIO, Callable, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
 
-def save_keyed_arrays(path: Path, key: str, **arrays: np.ndarray) -> None:
-    """Write ``arrays`` and ``key`` to ``path`` (npz). Atomic: an interrupted write never leaves a half file
-    under the real name. Raises OSError where the folder is not writable."""
+def write_atomically(path: Path, write: Callable[[BinaryIO], None]) -> None:
+    """Call ``write`` on a new file beside ``path``, then rename it to ``path``. A reader sees the old file or the
+    whole new one, never a part; an interrupted write leaves no half file under the real name. The staging name
+    is unique per writer (not ``path`` + a fixed suffix): two processes filling the same cache at once (two
+    ns-train on one photo folder) would otherwise truncate each other's staging file, one renaming it while the
+    other still writes, the other's rename then failing. The last complete write wins. Raises OSError where the
+    folder is not writable."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez(tmp, key=np.array(key), **arrays)
-    tmp.replace(path)
+    fd, staging = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())  # the data before the name: a power cut never leaves an empty file named as whole
+        os.replace(staging, path)
+    except BaseException:
+        Path(staging).unlink(missing_ok=True)
+        raise
+
+
+def save_keyed_arrays(path: Path, key: str, **arrays: np.ndarray) -> None:
+    """Write ``arrays`` and ``key`` to ``path`` (npz) with ``write_atomically``. Raises OSError where the
+    folder is not writable."""
+    write_atomically(path, lambda f: np.savez(f, key=np.array(key), **arrays))
 
 
 def load_keyed_arrays(path: Path, key: str) -> Tuple[Optional[Dict[str, np.ndarray]], str]:

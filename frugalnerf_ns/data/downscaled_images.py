@@ -11,7 +11,7 @@ from typing import Callable, Optional, Sequence, Tuple
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from frugalnerf_ns.cache import scene_cache_dir
+from frugalnerf_ns.cache import scene_cache_dir, write_atomically
 from frugalnerf_ns.data.input_checks import DataError, check_image_file
 
 CPU_LONG_SIDE = 640
@@ -73,10 +73,8 @@ def downscaled(
     except (UnidentifiedImageError, SyntaxError, OSError) as err:
         raise DataError(f"image file {path} is unreadable or corrupt ({err})") from None
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(target.stem + ".tmp.png")
-        Image.fromarray(area_downscale(pixels, factor)).save(tmp)
-        tmp.replace(target)
+        small = Image.fromarray(area_downscale(pixels, factor))
+        write_atomically(target, lambda f: small.save(f, format="PNG"))
     except OSError as err:
         raise DataError(f"could not write the downscaled copy of {path} to {target} ({err})") from None
     return target

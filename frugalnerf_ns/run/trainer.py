@@ -23,6 +23,7 @@ import re
 import signal
 import sys
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
@@ -51,6 +52,24 @@ class FrugalTrainerConfig(TrainerConfig):
     """Steps every schedule spans: the learning rates' and loss weights' decay, grid upsampling and the alpha
     mask (--pipeline.model.upsample-at / alpha-mask-at are fractions of it). None: --max-num-iterations of a run
     started from scratch; a resumed run keeps the one stored in its checkpoint."""
+
+    def set_timestamp(self) -> None:
+        """nerfstudio's timestamp (to the second), made unique: the run folder is claimed here, before ns-train
+        writes config.yml into it. Two ns-train started in the same second on one scene (a script with ``&``, two
+        terminals) would otherwise share one folder and overwrite each other's config and checkpoints; the second
+        gets ``<timestamp>_2``. A timestamp given with --timestamp is kept as given."""
+        if self.timestamp != "{timestamp}":
+            return
+        stamp = datetime.now().strftime("%Y-%m-%d_%H%M%S")
+        for attempt in range(1, 1000):
+            self.timestamp = stamp if attempt == 1 else f"{stamp}_{attempt}"
+            base = self.get_base_dir()
+            base.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                base.mkdir()  # atomic: exactly one process creates a given folder
+                return
+            except FileExistsError:
+                continue
 
 
 def is_out_of_memory(err: BaseException) -> bool:
