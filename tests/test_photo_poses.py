@@ -12,6 +12,7 @@ from PIL import Image
 
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.photo_poses import (
+    FEATURE_ATTEMPTS,
     PoseEstimationOptions,
     estimate_cameras,
     focal_from_35mm,
@@ -19,6 +20,7 @@ from frugalnerf_ns.data.photo_poses import (
     opengl_to_world_to_camera,
     world_to_camera_to_opengl,
 )
+from frugalnerf_ns.data.sparse_points import extract_sift
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
 from frugalnerf_ns.geometry.reprojection import project_to_camera
 from tests.photo_scene import FOCAL, HEIGHT, TRUE, WIDTH, camera, render
@@ -129,6 +131,35 @@ def test_bad_photos_get_one_line_naming_them():
         estimate_cameras(turned, ["left", "right"], FOCAL, PoseEstimationOptions())
     with pytest.raises(DataError, match="test photo far could not be registered"):
         estimate_cameras(good, ["a", "b"], FOCAL, PoseEstimationOptions(), [render(TRUE[2], seed=7)], ["far"])
+
+
+def low_contrast(image, contrast):
+    """The photo's grey levels squeezed around mid-grey (a dim room, a hazy day)."""
+    return np.clip(128 + contrast * (image.astype(np.float32) - 128), 0, 255).astype(np.uint8)
+
+
+def test_low_contrast_photos_register_with_more_features_and_failures_say_what_was_tried():
+    dim = [low_contrast(render(c), 0.12) for c in TRUE[:3]]
+    # COLMAP's SIFT settings find nothing in these photos; the second setting finds a few hundred features.
+    assert max(len(k) for k in extract_sift(dim, 8192, progress=False)[0]) < 30
+    second = FEATURE_ATTEMPTS[1]
+    assert min(len(k) for k in extract_sift(dim, 8192, progress=False, peak_threshold=second.peak_threshold)[0]) > 200
+    est = estimate_cameras(dim, ["a", "b", "c"], None, PoseEstimationOptions(), [low_contrast(render(TRUE[3]), 0.12)],
+                           ["test"])
+    assert abs(est.focal / FOCAL - 1.0) < 0.03
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        true_rotation, true_direction = relative(TRUE[a].numpy(), TRUE[b].numpy())
+        rotation, direction = relative(est.camera_to_worlds[a].numpy(), est.camera_to_worlds[b].numpy())
+        assert rotation_angle(true_rotation, rotation) < 0.5 and direction_error(true_direction, direction) < 2.0
+    true_rotation, _ = relative(TRUE[0].numpy(), TRUE[3].numpy())
+    rotation, _ = relative(est.camera_to_worlds[0].numpy(), est.test_camera_to_worlds[0].numpy())
+    assert rotation_angle(true_rotation, rotation) < 0.5  # the test photo matched with the same setting
+    darker = [low_contrast(render(c), 0.03) for c in TRUE[:3]]
+    with pytest.raises(DataError) as failure:
+        estimate_cameras(darker, ["a.png", "b.png", "c.png"], None, PoseEstimationOptions())
+    line = str(failure.value)
+    assert "\n" not in line and line.count("frugalnerf: error:") == 1
+    assert "photo a.png has 0 SIFT features" in line and f"also tried with {second.describe()}: photo " in line
 
 
 @pytest.mark.skipif(not FERN.exists(), reason="../shared/data is absent")

@@ -7,7 +7,7 @@ start-up of a photos-only folder, first and cached.
 
 Usage:
   frugalnerf-bench cameras [--data-root ../shared/data] [--cases fern-2v fern-3v ...]
-         [--startup-photos <photos>] [--out outputs/photo_cameras.json]
+         [--focal-factors 0.9 1.0 1.1] [--startup-photos <photos>] [--out outputs/photo_cameras.json]
 
 Columns: seconds to estimate (SIFT, matching, verification, poses, bundle adjustment, registration); the focal
 length against the parser's; the worst training pair's relative rotation and direction of travel (free of the
@@ -77,15 +77,21 @@ def aligned_errors(train_est, train_ref, est, ref, prefix: str) -> Dict[str, flo
 CASES = {
     # name: (data folder under --data-root, parser options: training views by count or list, test views)
     **{f"{scene}-{n}v": (f"llff/{scene}", {"num_train_views": n}) for scene in ("fern", "flower", "horns") for n in (2, 3, 4)},
+    "fern-3v-6-10-13": ("llff/fern", {"train_views": (6, 10, 13)}),
+    "flower-3v-3-12-21": ("llff/flower", {"train_views": (3, 12, 21)}),
     "juice_box-3v": ("captures/juice_box", {"train_views": (13, 17, 21), "test_views": (14, 15, 16, 18, 19, 20)}),
+    "juice_box-4v-wide": ("captures/juice_box", {"train_views": (45, 13, 29, 46)}),
+    "bird-3v": ("captures/bird", {"train_views": (0, 23, 46), "test_views": (8, 15, 31, 38)}),
+    "bird-4v": ("captures/bird", {"train_views": (0, 30, 60, 90), "test_views": (15, 45, 75)}),
     "dtu_scan65-3v": ("dtu/scan65", {"train_views": (22, 25, 28)}),
     "lego-8v": ("nerf_synthetic/lego", {"num_train_views": 8}),
 }
 
 
-def measure(data: Path, parser_options: Dict, options: PoseEstimationOptions) -> Dict:
+def measure(data: Path, parser_options: Dict, options: PoseEstimationOptions, focal_factor: Optional[float] = None) -> Dict:
     """Cameras estimated from the pixels of a posed scene's training views (the files and size its parser
-    trains on), test views registered, against the parser's cameras."""
+    trains on), test views registered, against the parser's cameras. ``focal_factor``: the focal length given
+    (as EXIF would) at that multiple of the parser's and kept, instead of found from the photos."""
     parser = AutoDataParserConfig(data=data, **parser_options).setup()
     train, test = parser.get_dataparser_outputs("train"), parser.get_dataparser_outputs("test")
     # uint8 RGB as the datamanager hands them to SIFT (alpha composited on white).
@@ -93,8 +99,10 @@ def measure(data: Path, parser_options: Dict, options: PoseEstimationOptions) ->
     start = time.perf_counter()
     row: Dict = {"data": str(data), "train": [Path(f).stem for f in train.image_filenames],
                  "size": f"{train_images[0].shape[1]}x{train_images[0].shape[0]}"}
+    published_focal = float(train.cameras.fx[0])
+    given = None if focal_factor is None else focal_factor * published_focal
     try:
-        cameras = estimate_cameras(train_images, [Path(f).name for f in train.image_filenames], None, options,
+        cameras = estimate_cameras(train_images, [Path(f).name for f in train.image_filenames], given, options,
                                    test_images, [Path(f).name for f in test.image_filenames], unregistered_as_nan=True)
     except DataError as err:
         row.update({"seconds": time.perf_counter() - start, "error": str(err)})
@@ -102,7 +110,6 @@ def measure(data: Path, parser_options: Dict, options: PoseEstimationOptions) ->
     row["seconds"] = time.perf_counter() - start
     reference = train.cameras.camera_to_worlds.double().numpy()
     reference_test = test.cameras.camera_to_worlds.double().numpy()
-    published_focal = float(train.cameras.fx[0])
     train_est = cameras.camera_to_worlds.numpy()
     test_est = cameras.test_camera_to_worlds.numpy()
     registered = np.isfinite(test_est).all(axis=(1, 2))
@@ -148,6 +155,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--startup-photos", type=Path, nargs="*", default=None,
                         help="photos to time the start-up with (default: fern's images_4 views 1 6 13 19, 1008x756)")
+    parser.add_argument("--focal-factors", type=float, nargs="*", default=None,
+                        help="also measure each case with the focal length fixed at these multiples of the parser's")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "photo_cameras.json")
     args = parser.parse_args(argv)
     rows = []
@@ -157,13 +166,16 @@ def main(argv: Optional[List[str]] = None) -> int:
         if not data.exists():
             print(f"frugalnerf-bench cameras: {data} is absent; {name} skipped")
             continue
-        rows.append({"case": name, **measure(data, parser_options, PoseEstimationOptions())})
-        print(f"  {name}: {rows[-1]['seconds']:.1f} s" + (f" ({rows[-1]['error']})" if "error" in rows[-1] else ""))
+        for factor in [None, *(args.focal_factors or [])]:
+            label = name if factor is None else f"{name}, focal {factor:g}x"
+            rows.append({"case": label, **measure(data, parser_options, PoseEstimationOptions(), factor)})
+            print(f"  {label}: {rows[-1]['seconds']:.1f} s" + (f" ({rows[-1]['error']})" if "error" in rows[-1] else ""))
     columns = [
         ("case", lambda r: r["case"]), ("train views", lambda r: " ".join(r["train"])), ("size", lambda r: r["size"]),
         ("s", lambda r: f"{r['seconds']:.1f}"), ("points", lambda r: r.get("points", "-")),
         ("focal (parser's)", lambda r: "-" if "focal" not in r else
          f"{r['focal']:.0f} ({r['published_focal']:.0f}, {r['focal_error_pct']:+.1f}%)"),
+        ("reproj. (px)", lambda r: fmt(r, "reprojection_error_px", 3)),
         ("pair rot / dir (deg)", lambda r: f"{fmt(r, 'pair_rotation_deg')} / {fmt(r, 'pair_direction_deg')}"),
         ("train rot median (deg)", lambda r: fmt(r, "train_rotation_deg_median")),
         ("train centre median / max (% spread)",

@@ -51,6 +51,26 @@ DEFAULT_FIELD_OF_VIEW = 65.0
 equivalent is 69 degrees; LLFF's phone 64)."""
 
 
+class FeatureSettings(NamedTuple):
+    """SIFT detection and matching of one attempt at registering the photos."""
+
+    peak_threshold: Optional[float] = None
+    """The detector's contrast threshold (None: COLMAP's default, 0.0067)."""
+    max_ratio: float = 0.8
+    """Ratio test of the matching (COLMAP's default 0.8)."""
+
+    def describe(self) -> str:
+        return f"SIFT peak threshold {self.peak_threshold}, ratio test {self.max_ratio}"
+
+
+FEATURE_ATTEMPTS = (FeatureSettings(), FeatureSettings(peak_threshold=0.002, max_ratio=0.9))
+"""Tried in order until the photos register: COLMAP's settings, then, for photos taken far apart, features of
+lower contrast and a looser ratio test (every pair is still verified by its essential matrix). The juice box's
+views 45 13 29 46 (73 degrees, one photo looking down at the box): 16 verified matches for the photo with the
+fewest at COLMAP's settings, 63 at the second. Larger images (1280 px: 13) and affine-shape or
+domain-size-pooled SIFT (12-17) did not help as much at 640 px (docs/captures.md)."""
+
+
 @dataclass(frozen=True)
 class PoseEstimationOptions:
     """How the cameras of a few photos are estimated. Frozen, so one instance can be a class-level default: a
@@ -147,7 +167,7 @@ def _camera(width: int, height: int, focal: float, radial: bool = False):
 
 def verified_matches(
     keypoints: Sequence[Tensor], descriptors: Sequence[Tensor], width: int, height: int, focal: float,
-    options: PoseEstimationOptions,
+    options: PoseEstimationOptions, max_ratio: float = 0.8,
 ) -> Dict[Tuple[int, int], np.ndarray]:
     """Matches of every pair that agree with one essential matrix (calibrated two-view geometry)."""
     pycolmap = _pycolmap()
@@ -162,7 +182,7 @@ def verified_matches(
     count = len(keypoints)
     for i in range(count):
         for j in range(i + 1, count):
-            matches = match_descriptors(descriptors[i], descriptors[j]).numpy()
+            matches = match_descriptors(descriptors[i], descriptors[j], max_ratio).numpy()
             if len(matches) < 8:
                 verified[(i, j)] = np.zeros((0, 2), dtype=np.int64)
                 continue
@@ -374,19 +394,21 @@ def observations(
 def register_test_photos(
     images: Sequence[np.ndarray], names: Sequence[str], keypoints: Sequence[Tensor], descriptors: Sequence[Tensor],
     point_of_feature: Dict[Tuple[int, int], int], points: np.ndarray, focal: float, width: int, height: int,
-    options: PoseEstimationOptions, unregistered_as_nan: bool = False,
+    options: PoseEstimationOptions, unregistered_as_nan: bool = False, features: FeatureSettings = FeatureSettings(),
 ) -> List[np.ndarray]:
     """OpenGL camera-to-world of each test photo, by absolute pose from its matches to the training photos'
     points (``point_of_feature``: (training view, feature) -> row of ``points``). Nothing of the training
     reconstruction changes, so a benchmark's test photos never move the training cameras or points. A photo
-    that cannot be registered is an error, or NaN with ``unregistered_as_nan`` (measurements)."""
-    test_keypoints, test_descriptors = extract_sift(images, options.max_features, progress=False)
+    that cannot be registered is an error, or NaN with ``unregistered_as_nan`` (measurements). ``features``: the
+    settings the training photos' features were found with."""
+    test_keypoints, test_descriptors = extract_sift(images, options.max_features, progress=False,
+                                                    peak_threshold=features.peak_threshold)
     minimum = options.min_verified_matches // 2
     poses = []
     for name, kps, desc in zip(names, test_keypoints, test_descriptors):
         pairs: Dict[int, int] = {}  # point -> test feature (the first match found)
         for view in range(len(keypoints)):
-            for a, b in match_descriptors(desc, descriptors[view]).tolist():
+            for a, b in match_descriptors(desc, descriptors[view], features.max_ratio).tolist():
                 point = point_of_feature.get((view, b))
                 if point is not None and point not in pairs:
                     pairs[point] = a
@@ -410,10 +432,11 @@ def estimate_cameras(
     images: Sequence[np.ndarray], names: Sequence[str], focal: Optional[float], options: PoseEstimationOptions,
     test_images: Sequence[np.ndarray] = (), test_names: Sequence[str] = (), unregistered_as_nan: bool = False,
 ) -> PhotoCameras:
-    """Cameras of 2 or more photos of one size (uint8 RGB), see the module's steps; then the test photos
-    registered into that reconstruction (``register_test_photos``). ``focal``: the focal length in pixels when
-    the photos say it (EXIF), else None (``options.field_of_view``). Raises ``DataError`` with one line naming
-    the photo or the step that failed."""
+    """Cameras of 2 or more photos of one size (uint8 RGB), see the module's steps, with the first of
+    ``FEATURE_ATTEMPTS`` that registers every photo; then the test photos registered into that reconstruction
+    (``register_test_photos``). ``focal``: the focal length in pixels when the photos say it (EXIF), else None
+    (``options.field_of_view``). Raises ``DataError`` with one line naming the photo or the step that failed and
+    what was tried."""
     if len(images) < 2:
         raise DataError(f"estimating cameras needs at least 2 photos (got {len(images)}: {', '.join(names)})")
     sizes = {image.shape[:2] for image in images}
@@ -422,12 +445,41 @@ def estimate_cameras(
     height, width = images[0].shape[:2]
     refine = options.focal_is_refined(len(images), bool(focal))
     focal = float(focal) if focal else focal_from_field_of_view(width, height, options.field_of_view)
-    keypoints, descriptors = extract_sift(images, options.max_features, progress=True)
+    failures: List[str] = []
+    for features in FEATURE_ATTEMPTS:
+        try:
+            cameras, keypoints, descriptors, point_of_feature = _estimate(images, names, focal, refine, options, features)
+            break
+        except DataError as err:
+            failures.append(str(err).removeprefix("frugalnerf: error: "))
+    else:
+        retried = "; ".join(f"with {f.describe()}: {why}" for f, why in zip(FEATURE_ATTEMPTS[1:], failures[1:]))
+        raise DataError(f"{failures[0]} (also tried {retried})")
+    if not len(test_images):
+        return cameras
+    if {image.shape[:2] for image in test_images} != {(height, width)}:
+        raise DataError(f"test photos must have the training photos' size ({width}x{height})")
+    tests = torch.from_numpy(np.stack(register_test_photos(
+        test_images, test_names, keypoints, descriptors, point_of_feature, cameras.points.points.numpy(),
+        cameras.focal, width, height, options, unregistered_as_nan, features,
+    )))
+    return cameras._replace(test_camera_to_worlds=tests)
+
+
+def _estimate(
+    images: Sequence[np.ndarray], names: Sequence[str], focal: float, refine: bool, options: PoseEstimationOptions,
+    features: FeatureSettings,
+) -> Tuple[PhotoCameras, List[Tensor], List[Tensor], Dict[Tuple[int, int], int]]:
+    """One attempt with one feature setting: (cameras without test photos, the keypoints and descriptors, and
+    (view, feature) -> row of the cameras' points, for registering test photos)."""
+    height, width = images[0].shape[:2]
+    keypoints, descriptors = extract_sift(images, options.max_features, progress=True,
+                                          peak_threshold=features.peak_threshold)
     for name, kps in zip(names, keypoints):
         if len(kps) < options.min_verified_matches:
             raise DataError(f"photo {name} has {len(kps)} SIFT features (at least {options.min_verified_matches} needed): "
                             "is it blank, blurred or very dark?")
-    verified = verified_matches(keypoints, descriptors, width, height, focal, options)
+    verified = verified_matches(keypoints, descriptors, width, height, focal, options, features.max_ratio)
     check_connected(verified, names, options.min_verified_matches)
     tracks = build_tracks(verified, [len(k) for k in keypoints])
     start = max(verified, key=lambda pair: len(verified[pair]))
@@ -472,14 +524,13 @@ def estimate_cameras(
         poses, points, focal = bundle_adjust(tracks, keypoints, poses, points, valid, focal, width, height,
                                              refine and len(poses) >= 3 and not final)
     sparse, kept, error = observations(tracks, keypoints, poses, points, valid, focal, width, height, options.max_reprojection_error)
+    seen = np.bincount(sparse.view.numpy(), minlength=len(images))
+    for view in np.flatnonzero(seen < options.min_verified_matches // 2):
+        raise DataError(
+            f"photo {names[view]} sees {seen[view]} of the estimate's points after the adjustment (at least "
+            f"{options.min_verified_matches // 2} needed): its camera is not determined"
+        )
     c2w = torch.from_numpy(np.stack([poses[v] for v in range(len(images))]))
-    tests = torch.zeros(0, 3, 4, dtype=torch.float64)
-    if len(test_images):
-        if {image.shape[:2] for image in test_images} != {(height, width)}:
-            raise DataError(f"test photos must have the training photos' size ({width}x{height})")
-        point_of_feature = {(v, f): row for row, index in enumerate(kept) for v, f in tracks[index]}
-        tests = torch.from_numpy(np.stack(register_test_photos(
-            test_images, test_names, keypoints, descriptors, point_of_feature, sparse.points.numpy(), focal, width,
-            height, options, unregistered_as_nan,
-        )))
-    return PhotoCameras(c2w, focal, width, height, sparse, tests, error)
+    point_of_feature = {(v, f): row for row, index in enumerate(kept) for v, f in tracks[index]}
+    cameras = PhotoCameras(c2w, focal, width, height, sparse, torch.zeros(0, 3, 4, dtype=torch.float64), error)
+    return cameras, keypoints, descriptors, point_of_feature

@@ -253,7 +253,8 @@ def _pycolmap():
 
 
 def extract_sift(
-    images: Sequence[np.ndarray], max_features: int, progress: bool = True, upsample: int = 1
+    images: Sequence[np.ndarray], max_features: int, progress: bool = True, upsample: int = 1,
+    peak_threshold: Optional[float] = None,
 ) -> Tuple[List[Tensor], List[Tensor]]:
     """SIFT keypoints ((u, v) per feature) and unit-length float descriptors of uint8 grey or RGB images, on
     the CPU, at most ``max_features`` per image (the largest-scale ones: they repeat best across views;
@@ -261,7 +262,9 @@ def extract_sift(
 
     ``upsample`` > 1 runs SIFT on each image enlarged that many times (bicubic) and keeps up to ``max_features``
     x upsample^2 features; the keypoints are divided back into the image's pixels (COLMAP's and our pixel
-    centres both lie at i + 0.5, so the image spans [0, W] at either size and the map is a plain division)."""
+    centres both lie at i + 0.5, so the image spans [0, W] at either size and the map is a plain division).
+    ``peak_threshold``: the detector's contrast threshold (None: COLMAP's default); lower finds more features
+    in low-contrast regions."""
     upsample = int(upsample)
     if upsample < 1:
         raise ValueError(f"sift upsample must be a whole number >= 1, got {upsample}")
@@ -269,6 +272,8 @@ def extract_sift(
     pycolmap = _pycolmap()
     options = pycolmap.FeatureExtractionOptions()
     options.sift.max_num_features = max_features
+    if peak_threshold is not None:
+        options.sift.peak_threshold = float(peak_threshold)
     extractor = pycolmap.FeatureExtractor.create(options, pycolmap.Device.cpu)
     keypoints, descriptors = [], []
     ticker = Progress(len(images), "frugalnerf sparse points: SIFT", "view", "views/s", 5.0, quiet_seconds=3.0) if progress else None
