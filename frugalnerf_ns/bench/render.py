@@ -7,6 +7,9 @@ Rows (seconds per frame or per test view, same machine, same model, same image s
   (``--pipeline.model.fast-inference False``);
 - test view, inference marcher (now): ``render_scale_inference``, blocks of slots, rays dropped once they
   leave the box or turn opaque; with the PSNR and largest pixel difference between the two renders;
+- test view and spiral frame, inference marcher on its torch path and with the fused kernels
+  (``--pipeline.model.kernels torch`` / ``warp``), alternating over ``--repeats`` rounds (medians), with the
+  PSNR and largest pixel difference between them (when Warp compiles here);
 - with ``--before DIR`` (a source tree of an earlier commit, e.g. ``git worktree add /tmp/before <rev>``): test
   view, that tree's ``render_scale_inference`` run on this process's model (it must call only field methods
   this tree still has), timed alternately with this tree's over ``--repeats`` rounds (medians);
@@ -51,6 +54,7 @@ def main(argv=None) -> list:
     from nerfstudio.utils.eval_utils import eval_setup
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.tools.offline_tools import score_test_view
+    from frugalnerf_ns.model.fused_kernels import warp_kernels
     from frugalnerf_ns.tools.video import scene_video_cameras
 
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")
@@ -105,10 +109,27 @@ def main(argv=None) -> list:
                  statistics.median(times["before"])),
                 (f"test view, inference marcher (now), median of {args.repeats}", statistics.median(times["now"]))]
 
+    def compare_kernels() -> list:
+        """The inference marcher on its torch path and with the fused kernels, alternating, median seconds per test
+        view and per spiral frame."""
+        chosen, times = model.config.kernels, {}
+        try:
+            for _ in range(args.repeats):
+                for kernels in ("torch", "warp"):
+                    model.config.kernels = kernels
+                    times.setdefault(("view", kernels), []).append(timed(lambda: test_views(True, kernels)) / len(views))
+                    times.setdefault(("frame", kernels), []).append(timed(lambda: render_path(ours)) / args.frames)
+        finally:
+            model.config.kernels = chosen
+        return [(f"{what}, inference marcher, {kernels} path, median of {args.repeats}", statistics.median(times[(key, kernels)]))
+                for key, what in (("view", "test view"), ("frame", "spiral frame")) for kernels in ("torch", "warp")]
+
     model.num_rendered_scales = None  # the default outside the viewer: the full scale only
     ours = scene_video_cameras(datamanager, start, args.frames)
     ns_eval()  # warm-up: LPIPS weights, first-call allocations
+    kernel_rows = compare_kernels() if warp_kernels("auto") is not None else []
     rows = [
+        *kernel_rows,
         ("test view, training marcher (before)", timed(lambda: test_views(False)) / len(views)),
         ("test view, inference marcher (now)", timed(lambda: test_views(True)) / len(views)),
         ("spiral frame, now (scene path)", timed(lambda: render_path(ours)) / args.frames),
@@ -117,6 +138,9 @@ def main(argv=None) -> list:
     ]
     agreement = {"psnr_inference_vs_training_marcher": psnr_between(renders[True], renders[False]),
                  "max_pixel_difference": largest_difference(renders[True], renders[False])}
+    if kernel_rows:
+        agreement["psnr_warp_vs_torch"] = psnr_between(renders["warp"], renders["torch"])
+        agreement["max_pixel_difference_warp_vs_torch"] = largest_difference(renders["warp"], renders["torch"])
     if before_marcher is not None:
         rows += compare_before()
         agreement["psnr_inference_vs_before"] = psnr_between(renders["now"], renders["before"])
@@ -129,6 +153,9 @@ def main(argv=None) -> list:
     table += (f"\n\ninference vs training marcher on {len(views)} test views: PSNR "
               f"{agreement['psnr_inference_vs_training_marcher']:.1f} dB, largest pixel difference "
               f"{agreement['max_pixel_difference']:.2e}")
+    if kernel_rows:
+        table += (f"\nfused kernels vs torch path on {len(views)} test views: PSNR {agreement['psnr_warp_vs_torch']:.1f} dB, "
+                  f"largest pixel difference {agreement['max_pixel_difference_warp_vs_torch']:.2e}")
     if before_marcher is not None:
         table += (f"\ninference marcher now vs {args.before}: PSNR {agreement['psnr_inference_vs_before']:.1f} dB, "
                   f"largest pixel difference {largest_difference(renders['now'], renders['before']):.2e}")

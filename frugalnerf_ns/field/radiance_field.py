@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 from dataclasses import dataclass, field as dataclass_field
-from typing import Dict, Iterator, List, Literal, Optional, Sequence, Tuple
+from typing import Dict, Iterator, List, Literal, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -182,6 +182,14 @@ class FrugalNeRFField(nn.Module):
         idx = torch.minimum((idx + 1).clamp_min(0), res + 1)
         flat = idx[..., 0] * strides[0] + idx[..., 1] * strides[1] + idx[..., 2]
         return inside_box & padded[flat]
+
+    def mask_lookup(self) -> Optional[Tuple[Tensor, Tensor, Tensor, Tensor]]:
+        """What ``inside`` reads of the alpha mask (the padded flat mask, the mask's box, its unpadded shape, the
+        padded strides), for kernels that repeat the test; None without a mask."""
+        if self.alpha_mask.numel() == 0:
+            return None
+        padded, res, strides = self._padded_mask()
+        return padded, self.alpha_mask_aabb, res, strides
 
     def _padded_mask(self) -> Tuple[Bool[Tensor, " entries"], Int[Tensor, "3"], Int[Tensor, "3"]]:
         """The alpha mask with one voxel of False on every side, flat, its unpadded shape and the padded
@@ -386,6 +394,19 @@ class FrugalNeRFField(nn.Module):
         return list(self.appearance_basis.parameters()) + list(self.color_mlp.parameters())
 
 
+class GroupBound(NamedTuple):
+    """One volume of ``BakedDensity.group_bounds``: a group is looked up at index-space point
+    ``(p * a + b + 1) * to_index`` (floor for cells, round for nodes), clamped into ``entries`` (x, y, z)."""
+
+    occupancy: Tensor
+    """Flat bool volume, x fastest."""
+    entries: Tensor
+    a: Tensor
+    b: Tensor
+    to_index: Tensor
+    rounding: bool
+
+
 @dataclass(frozen=True)
 class BakedDensity:
     """One scale's density as a dense [1, 1, Z, Y, X] tensor (and the alpha mask as a volume, to bound where
@@ -472,6 +493,18 @@ class BakedDensity:
         hit = torch.ones(origins.shape[0], groups, dtype=torch.bool, device=origins.device)
         if origins.shape[0] == 0:
             return hit
+        centre = torch.arange(groups, device=origins.device, dtype=origins.dtype) * group + 0.5 * group
+        t = t_near[:, None] + centre[None, :] * step
+        for bound in self.group_bounds(directions, step, group):
+            f_origin, f_direction = (origins * bound.a + bound.b + 1.0) * bound.to_index, directions * bound.a * bound.to_index
+            hit &= self._group_hits(bound.occupancy, bound.entries, f_origin, f_direction, t, bound.rounding)
+        return hit
+
+    def group_bounds(self, directions: Float[Tensor, "rays 3"], step: float, group: int) -> List["GroupBound"]:
+        """The volumes ``occupied_groups`` looks each group up in, for these rays: the density grid's cells that
+        can be non-zero (ReLU fields; softplus is never 0) and the alpha mask's occupied voxels (``occupied_density``
+        is 0 outside them), each dilated by how far a group's slots (and their nearest mask voxels) lie from its
+        centre along these rays. Each bound is conservative, so both together are."""
         bounds = [("cells", self.grid, self.grid_a, self.grid_b, 1)] if self.activation == "relu" else []
         if self.mask is not None:
             same_nodes = self.mask.shape == self.grid.shape and bool(
@@ -480,21 +513,19 @@ class BakedDensity:
                 bounds = [("cells in mask", self.grid, self.grid_a, self.grid_b, 1)]
             else:
                 bounds.append(("mask", self.mask, self.mask_a, self.mask_b, 0))
-        centre = torch.arange(groups, device=origins.device, dtype=origins.dtype) * group + 0.5 * group
-        t = t_near[:, None] + centre[None, :] * step
+        found = []
         for which, volume, a, b, cell in bounds:
-            nodes = torch.tensor(volume.shape[2:][::-1], device=origins.device, dtype=origins.dtype)  # x, y, z
+            nodes = torch.tensor(volume.shape[2:][::-1], device=directions.device, dtype=directions.dtype)  # x, y, z
             if bool((nodes < 2).any()):
                 continue  # a one-entry axis: no cells to bound (the lower scales of a tiny grid)
             to_index = 0.5 * (nodes - 1)  # grid_sample's corner-aligned coordinates in [-1, 1] to entries
-            f_origin, f_direction = (origins * a + b + 1.0) * to_index, directions * a * to_index
             # How far (in entries) a group's slots lie from its centre, plus the half entry between a point and
             # its nearest node and one for rounding.
-            reach = (0.5 * group * step) * f_direction.abs().amax(dim=0) + (0.0 if cell else 0.5)
+            reach = (0.5 * group * step) * (directions * a * to_index).abs().amax(dim=0) + (0.0 if cell else 0.5)
             radius = tuple(int(r) + 1 for r in reach.ceil().tolist()[::-1])
             occupancy = self._dilated_occupancy(which, radius)  # type: ignore[arg-type]
-            hit &= self._group_hits(occupancy, nodes - cell, f_origin, f_direction, t, rounding=not cell)
-        return hit
+            found.append(GroupBound(occupancy, nodes - cell, a, b, to_index, not cell))
+        return found
 
     def read(self, positions: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
         """Density at world points from the dense tensor (trilinear, border-clamped; no mask, no box test)."""

@@ -102,6 +102,9 @@ class FrugalNeRFSettings(ModelConfig):
     fast_inference: bool = True
     """Outside training, without gradients, march in blocks and stop each ray once its transmittance is below
     1e-4 (model/rendering.py, ``render_scale_inference``); False renders with the training marcher."""
+    kernels: Literal["auto", "warp", "torch"] = "auto"
+    """Fused kernels (NVIDIA Warp, compiled at first use) for the inference marcher's density pass on the CPU;
+    torch: the reference path. auto: Warp where it imports and compiles, else torch with one line."""
     mlp_hidden_dim: int = 128
     """Width of the colour MLP."""
     feature_pe: int = 0

@@ -44,6 +44,7 @@ from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.model.objective import ReferenceViews
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
+from frugalnerf_ns.model.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import StepRender, render_scale, render_scale_inference, scale_suffix
 from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.model.training_schedule import training_callbacks
@@ -287,7 +288,7 @@ class FrugalNeRFModel(Model):
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
                             cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
                     if inference:
-                        render = render_scale_inference(*args)
+                        render = render_scale_inference(*args, kernels=warp_kernels(cfg.kernels, CONSOLE.print))
                     else:
                         shade = detached = None
                         if groups is not None:

@@ -19,6 +19,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+from frugalnerf_ns.model import fused_kernels
 from frugalnerf_ns.model.geometric_adaptation import AdaptationResult
 from frugalnerf_ns.geometry.raymarch import (
     MAX_OPTICAL_DEPTH,
@@ -173,6 +174,7 @@ def render_scale_inference(
     block: int = 32,
     termination: float = TERMINATION_TRANSMITTANCE,
     faint_budget: float = FAINT_BUDGET,
+    kernels=None,
 ) -> PixelRender:
     """``render_scale`` without jitter or gradients, marched ``block`` slots at a time over the rays still
     alive: the same samples (``march_steps``' rule), the same compositing (``composite_weights``: optical
@@ -188,7 +190,11 @@ def render_scale_inference(
     any sum), ``block // SKIP_GROUP`` of them per iteration, in order. Density comes from
     ``field.occupied_density`` at every slot of a marched group (the baked grid: one dense read, no selection
     of the occupied slots); colour only at the slots whose weight passes the threshold, added per ray. The
-    state of the rays still marching is kept packed, and a ray's sums are written out when it leaves."""
+    state of the rays still marching is kept packed, and a ray's sums are written out when it leaves.
+
+    ``kernels`` (the warp module of ``fused_kernels.warp_kernels``; None: torch): the density pass as one fused
+    kernel (``fused_kernels.density_march``, the same samples, weights and samples to shade) and the colour of
+    every sample to shade in one batch, where the density is baked and the rays are on the CPU."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
     rays, device = origins.shape[0], origins.device
@@ -203,6 +209,20 @@ def render_scale_inference(
     ids = torch.nonzero(segments.hit, as_tuple=True)[0]
     o, d = origins[ids].to(compute), directions[ids].to(compute)
     t_near, t_far = segments.t_near[ids].to(compute), segments.t_far[ids].to(compute)
+    if kernels is not None and baked is not None and device.type == "cpu":
+        fused = fused_kernels.density_march(
+            kernels, baked, field_.aabb, field_.mask_lookup(), o, d, t_near, t_far,
+            baked.group_bounds(d, step, group), step, num_samples, group, per_block, delta, weight_threshold,
+            FAINT_WEIGHT, faint_budget, stop_optical, MAX_OPTICAL_DEPTH)
+        sums[ids, 0], sums[ids, 1] = fused.accumulation.to(compute), fused.weighted_t.to(compute)
+        if fused.rays.numel():
+            rows, t = fused.rays, fused.t.to(compute)
+            positions = o[rows] + d[rows] * t[:, None]
+            colors = field_.inference_color(positions, d[rows], scale).to(compute)
+            rgb = torch.zeros(ids.numel(), 3, device=device, dtype=compute)
+            rgb.index_add_(0, rows, colors * fused.weights.to(compute)[:, None])
+            sums[ids, 2:5] = rgb
+        return _pixels(sums, segments, background, compute)
     # The groups of slots each ray marches: those that start inside its segment and can hold density (the
     # others add nothing to any sum), in order, packed to the front of ``order`` (``count`` per ray).
     num_groups = -(-num_samples // group)
@@ -250,6 +270,11 @@ def render_scale_inference(
             ids, o, d, t_far, t_near, count, order, optical_sum, ray_sums = (
                 x[marching] for x in (ids, o, d, t_far, t_near, count, order, optical_sum, ray_sums))
     sums[ids] = ray_sums
+    return _pixels(sums, segments, background, compute)
+
+
+def _pixels(sums: Tensor, segments: RaySegments, background: Tensor, compute: torch.dtype) -> PixelRender:
+    """Pixels from each ray's accumulated weight, weighted t and colour (``sums``' first five columns)."""
     accumulation, weighted_t, rgb = sums[:, 0], sums[:, 1], sums[:, 2:5]
     eps = torch.finfo(compute).eps
     depth = weighted_t / (accumulation + eps)

@@ -1,0 +1,94 @@
+"""The fused density march (NVIDIA Warp, on the CPU) against the torch inference marcher it replaces: the same
+pixels, depths and accumulations on fields with and without an alpha mask, ReLU and softplus densities, every
+scale, rays that miss the box, start inside it or turn opaque early; and the fallback when Warp is unusable."""
+
+import pytest
+import torch
+
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+from frugalnerf_ns.geometry.raymarch import intersect_aabb
+from frugalnerf_ns.model import fused_kernels
+from frugalnerf_ns.model.rendering import FAINT_BUDGET, render_scale_inference
+from frugalnerf_ns.run.options import OptionError
+from tests.test_inference_render import SETTINGS, opaque_field, rays
+
+wp = fused_kernels.warp_kernels("auto")
+needs_warp = pytest.mark.skipif(wp is None, reason="Warp does not compile on this machine")
+
+
+def render(field, scale, kernels, origins=None, directions=None, termination=1e-4, faint_budget=FAINT_BUDGET):
+    if origins is None:
+        origins, directions = rays(600, seed=3)
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    background = torch.tensor([0.2, 0.5, 1.0])
+    return render_scale_inference(field, origins, directions, scale, background, segments, **SETTINGS,
+                                  termination=termination, faint_budget=faint_budget, kernels=kernels)
+
+
+def close(a, b):
+    assert torch.allclose(a.rgb, b.rgb, atol=2e-5), (a.rgb - b.rgb).abs().max()
+    assert torch.allclose(a.accumulation, b.accumulation, atol=2e-5)
+    assert torch.allclose(a.depth, b.depth, atol=2e-4)
+
+
+@needs_warp
+@pytest.mark.parametrize("mask", [False, True])
+@pytest.mark.parametrize("scale", [0, 1, 2])
+def test_the_fused_march_renders_the_torch_marchers_pixels(scale, mask):
+    field = opaque_field(mask=mask)
+    ours, reference = render(field, scale, wp), render(field, scale, None)
+    close(ours, reference)
+    assert reference.accumulation.max() > 0.999 and reference.accumulation[:20].abs().max() == 0
+    # Without termination and faint budget too (every sample to the end of its segment).
+    close(render(field, scale, wp, termination=0.0, faint_budget=0.0), render(field, scale, None, termination=0.0,
+                                                                             faint_budget=0.0))
+
+
+@needs_warp
+def test_softplus_density_rays_from_inside_the_box_and_a_hazy_field():
+    torch.manual_seed(4)
+    field = FrugalNeRFField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), (20, 22, 18),
+                            density_components=(3, 2, 2), appearance_components=(4, 2, 2), mlp_hidden_dim=16,
+                            mlp_implementation="torch", density_activation="softplus")
+    with torch.no_grad():
+        for tensor in [*field.density_grid.planes, *field.density_grid.lines]:
+            tensor.uniform_(0.2, 1.7)  # a haze: accumulations 0.04-0.997, some rays terminate
+    generator = torch.Generator().manual_seed(5)
+    origins = torch.rand(500, 3, generator=generator) * 1.6 - 0.8  # inside the box
+    directions = torch.nn.functional.normalize(torch.randn(500, 3, generator=generator), dim=-1)
+    ours, reference = (render(field, 0, k, origins, directions) for k in (wp, None))
+    close(ours, reference)
+    assert 0.3 < float(reference.accumulation.mean()) < 0.9 and float(reference.accumulation.max()) > 0.99
+
+
+@needs_warp
+def test_the_model_renders_with_the_kernels_by_default_and_matches_torch():
+    from tests.helpers import tiny_model
+
+    model = tiny_model()
+    model.eval()
+    assert model.config.kernels == "auto"
+    origins, directions = rays(400, seed=6)
+    field = model.field
+    with torch.no_grad():
+        for line in field.density_grid.lines:
+            line.add_(0.4)
+    ours, reference = render(field, 0, wp, origins, directions), render(field, 0, None, origins, directions)
+    close(ours, reference)
+
+
+def test_without_warp_auto_falls_back_to_torch_with_one_line_and_warp_is_an_option_error(monkeypatch):
+    said = []
+    monkeypatch.setattr(fused_kernels, "_state", {})
+
+    def broken(say):
+        raise RuntimeError("no compiler here\nsecond line")
+
+    monkeypatch.setattr(fused_kernels, "_load_warp", broken)
+    assert fused_kernels.warp_kernels("auto", said.append) is None
+    assert said == ["frugalnerf: fused kernels unavailable (RuntimeError: no compiler here): rendering with the torch "
+                    "path"]
+    assert fused_kernels.warp_kernels("auto", said.append) is None and len(said) == 1  # said once per process
+    with pytest.raises(OptionError, match="--pipeline.model.kernels warp: Warp cannot be used here"):
+        fused_kernels.warp_kernels("warp", said.append)
+    assert fused_kernels.warp_kernels("torch", said.append) is None
