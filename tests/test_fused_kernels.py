@@ -92,3 +92,28 @@ def test_without_warp_auto_falls_back_to_torch_with_one_line_and_warp_is_an_opti
     with pytest.raises(OptionError, match="--pipeline.model.kernels warp: Warp cannot be used here"):
         fused_kernels.warp_kernels("warp", said.append)
     assert fused_kernels.warp_kernels("torch", said.append) is None
+
+
+@needs_warp
+def test_the_fused_outer_space_composites_as_torch_does():
+    from frugalnerf_ns.field.outer_space import OuterSpace
+
+    torch.manual_seed(7)
+    outer = OuterSpace(torch.tensor([[-1.0, -0.5, -1.0], [1.0, 0.5, 1.0]]), 24, 4, 4, 32, 16)
+    with torch.no_grad():
+        for tensor in [*outer.density_grid.planes, *outer.density_grid.lines]:
+            tensor.uniform_(0.0, 0.6)
+        for tensor in [*outer.appearance_grid.planes, *outer.appearance_grid.lines]:
+            tensor.normal_(0.0, 0.5)
+    generator = torch.Generator().manual_seed(8)
+    # Cameras outside the box looking at it (front and behind samples), and some inside it (behind only).
+    origins = torch.cat([torch.randn(300, 3, generator=generator) * 0.3 + torch.tensor([0.0, 0.0, 4.0]),
+                         torch.rand(100, 3, generator=generator) - 0.5])
+    directions = torch.nn.functional.normalize(torch.randn(400, 3, generator=generator) * 0.4
+                                               + torch.tensor([0.0, 0.0, -1.0]), dim=-1)
+    with torch.no_grad():
+        ours, reference = outer.render(origins, directions, False, 0.0, wp), outer.render(origins, directions, False)
+    for a, b in zip(ours, reference):  # front, behind
+        assert torch.allclose(a.rgb, b.rgb, atol=2e-5) and torch.allclose(a.accumulation, b.accumulation, atol=2e-5)
+        assert torch.allclose(a.depth, b.depth, rtol=1e-4)
+    assert 0.05 < float(reference[0].accumulation.mean()) < 0.95 and float(reference[1].accumulation.mean()) > 0.05

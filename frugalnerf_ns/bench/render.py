@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import inspect
 import statistics
 import sys
 import time
@@ -198,4 +199,11 @@ def marcher_from_tree(tree: Path):
         for name, member in vars(before_field.BakedDensity).items():
             if callable(member) and not name.startswith("__") and not hasattr(radiance_field.BakedDensity, name):
                 setattr(radiance_field.BakedDensity, name, member)
-    return _load_private(path, "frugalnerf_before_rendering").render_scale_inference
+    marcher = _load_private(path, "frugalnerf_before_rendering").render_scale_inference
+    if "kernels" in inspect.signature(marcher).parameters:
+        return marcher
+
+    def without_kernels(*args, kernels=None, **kwargs):  # a tree from before the fused kernels: its torch path
+        return marcher(*args, **kwargs)
+
+    return without_kernels

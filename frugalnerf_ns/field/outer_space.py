@@ -126,11 +126,19 @@ class OuterSpace(nn.Module):
         return F.relu(values[:, 0]), torch.sigmoid(values[:, 1:])
 
     def _composite(
-        self, origins: Tensor, directions: Tensor, edges: Tensor, t: Tensor
-    ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        self, origins: Tensor, directions: Tensor, edges: Tensor, t: Tensor, kernels=None
+    ) -> Tuple[Optional[Tensor], Tensor, Tensor, Tensor]:
         """Weights, accumulation, colour sum and disparity sum of samples ``t`` in bins ``edges`` along each ray;
-        each sample's share of the ray is its bin's length in the contracted space."""
+        each sample's share of the ray is its bin's length in the contracted space. ``kernels`` (outside training,
+        rays on the CPU): one fused kernel (``model.fused_kernels.outer_composite``), no per-sample weights."""
         rays = origins.shape[0]
+        if kernels is not None and not torch.is_grad_enabled() and origins.device.type == "cpu":
+            from frugalnerf_ns.model.fused_kernels import outer_composite
+
+            dims = self.density_grid.resolution_tuple[::-1]
+            sums = outer_composite(kernels, self._baked_nodes(), dims, self.centre, self.half_size, origins, directions,
+                                   edges, t, OUTER_DISTANCE_SCALE, MAX_OPTICAL_DEPTH).to(origins.dtype)
+            return None, sums[:, 0], sums[:, 1:4], sums[:, 4]
         edge_points = contract(origins[:, None, :] + directions[:, None, :] * edges[..., None], self.centre, self.half_size)
         deltas = (edge_points[:, 1:] - edge_points[:, :-1]).norm(dim=-1)
         points = (origins[:, None, :] + directions[:, None, :] * t[..., None]).reshape(-1, 3)
@@ -145,11 +153,14 @@ class OuterSpace(nn.Module):
         return weights, accumulation, (weights[..., None] * color).sum(dim=-2), (weights / t).sum(dim=-1)
 
     @staticmethod
-    def _distortion(weights: Tensor) -> Tensor:
-        return interval_distortion(weights) if torch.is_grad_enabled() else weights.new_zeros(weights.shape[0])
+    def _distortion(weights: Optional[Tensor], rays: Tensor) -> Tensor:
+        if weights is None or not torch.is_grad_enabled():
+            return rays.new_zeros(rays.shape[0])
+        return interval_distortion(weights)
 
     def render(
-        self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], jitter: bool, near: float = 0.0
+        self, origins: Float[Tensor, "rays 3"], directions: Float[Tensor, "rays 3"], jitter: bool, near: float = 0.0,
+        kernels=None,
     ) -> Tuple[OuterRender, OuterRender]:
         """Composite the outside in front of the box (cameras outside it; ``num_front_samples`` evenly in t) and
         behind it (``num_samples``, linear in disparity to ``FAR_BOX_HALVES`` box halves) along each ray (unit
@@ -158,10 +169,10 @@ class OuterSpace(nn.Module):
         t_in, t_out, t_near = self.segments(origins, directions, near)
         far = torch.maximum(torch.full_like(t_out, FAR_BOX_HALVES * float(self.half_size.max())), 2.0 * t_out)
         edges, t = disparity_bins(t_out, far, self.num_samples, jitter)
-        weights, acc, rgb, disparity = self._composite(origins, directions, edges, t)
+        weights, acc, rgb, disparity = self._composite(origins, directions, edges, t, kernels)
         # Expected disparity, not distance: the share a ray lets through to the map sits at 1000 box halves, where
         # a distance average would let 5 % of it move the depth by 50 box halves.
-        behind = OuterRender(rgb, acc, 1.0 / (disparity + (1.0 - acc) / far), self._distortion(weights))
+        behind = OuterRender(rgb, acc, 1.0 / (disparity + (1.0 - acc) / far), self._distortion(weights, origins))
         # No space in front of the box (the option, or every camera inside it, as with the default box): its
         # samples would all weigh 0, so the grid reads of the training hot path are skipped.
         if self.num_front_samples <= 0 or not bool((t_in > t_near).any()):
@@ -171,8 +182,8 @@ class OuterSpace(nn.Module):
         front_edges = t_near[:, None] + (t_in - t_near)[:, None] * u[None, :]
         offset = torch.rand_like(front_edges[:, 1:]) if jitter else torch.full_like(front_edges[:, 1:], 0.5)
         front_t = (front_edges[:, :-1] + offset * (front_edges[:, 1:] - front_edges[:, :-1])).clamp_min(1e-6)
-        weights, acc, rgb, disparity = self._composite(origins, directions, front_edges, front_t)
-        front = OuterRender(rgb, acc, 1.0 / disparity.clamp_min(1e-12), self._distortion(weights))
+        weights, acc, rgb, disparity = self._composite(origins, directions, front_edges, front_t, kernels)
+        front = OuterRender(rgb, acc, 1.0 / disparity.clamp_min(1e-12), self._distortion(weights, origins))
         return front, behind
 
     def grid_parameters(self):

@@ -260,7 +260,9 @@ class FrugalNeRFModel(Model):
         far_depth = None  # where each ray meets the far background's sphere (None: no sphere)
         front = behind = None  # the space outside the box in front of it and behind it (None: not modelled)
         if self.outer_space is not None and self.outer_space.is_active:
-            front, behind = self.outer_space.render(world_origins, world_directions, self.training, self.config.near_plane)
+            kernels = None if self.training or torch.is_grad_enabled() else warp_kernels(self.config.kernels, CONSOLE.print)
+            front, behind = self.outer_space.render(world_origins, world_directions, self.training, self.config.near_plane,
+                                                    kernels)
             # Behind the box: the outside, then what it lets through falls on the map at infinity.
             far_map = self.far_background(world_origins, world_directions)  # type: ignore[misc]
             background = behind.rgb + (1.0 - behind.accumulation[:, None]) * far_map

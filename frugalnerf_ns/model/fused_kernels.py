@@ -241,7 +241,83 @@ def _define_kernels(wp) -> dict:
         sums[r, 1] = weighted_t
         sums[r, 2] = float(count)
 
-    return {"module": density_march.module, "density_march": density_march}
+    @wp.func
+    def contract_point(p: wp.vec3, centre: wp.vec3, half: wp.vec3) -> wp.vec3:
+        # geometry.contraction.contract: box units, the box as it is, beyond it into [-2, 2]^3.
+        q = wp.vec3((p[0] - centre[0]) / half[0], (p[1] - centre[1]) / half[1], (p[2] - centre[2]) / half[2])
+        norm = wp.max(wp.max(wp.abs(q[0]), wp.abs(q[1])), wp.abs(q[2]))
+        if norm > 1.0:
+            return q * ((2.0 - 1.0 / norm) / norm)
+        return q
+
+    @wp.kernel
+    def outer_composite(
+        origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
+        edges: wp.array2d(dtype=wp.float32), t: wp.array2d(dtype=wp.float32),
+        table: wp.array2d(dtype=wp.float32), dims: wp.vec3i, centre: wp.vec3, half: wp.vec3,
+        distance_scale: wp.float32, max_optical: wp.float32, sums: wp.array2d(dtype=wp.float32),
+    ):
+        # OuterSpace._composite outside training: each sample's share of the ray is its bin's length in the
+        # contracted space; density and colour logits from the baked node table (trilinear_rows' rule).
+        r = wp.tid()
+        o = origins[r]
+        d = directions[r]
+        optical_sum = wp.float32(0.0)
+        accumulation = wp.float32(0.0)
+        red = wp.float32(0.0)
+        green = wp.float32(0.0)
+        blue = wp.float32(0.0)
+        disparity = wp.float32(0.0)
+        previous = contract_point(o + d * edges[r, 0], centre, half)
+        for i in range(t.shape[1]):
+            edge = contract_point(o + d * edges[r, i + 1], centre, half)
+            delta = wp.length(edge - previous)
+            previous = edge
+            ti = t[r, i]
+            c = contract_point(o + d * ti, centre, half) * 0.5  # [-2, 2] to the grid's [-1, 1]
+            low = wp.vec3i(0, 0, 0)
+            w = wp.vec3(0.0, 0.0, 0.0)
+            for k in range(3):
+                f = wp.min(wp.max((c[k] + 1.0) * 0.5 * float(dims[k] - 1), 0.0), float(dims[k] - 1))
+                lo = wp.min(wp.floor(f), wp.max(float(dims[k] - 2), 0.0))
+                low[k] = int(lo)
+                w[k] = f - lo
+            x_step = int(0)
+            y_step = int(0)
+            z_step = int(0)
+            if dims[0] > 1:
+                x_step = 1
+            if dims[1] > 1:
+                y_step = dims[0]
+            if dims[2] > 1:
+                z_step = dims[0] * dims[1]
+            base = (low[2] * dims[1] + low[1]) * dims[0] + low[0]
+            values = wp.vec4(0.0, 0.0, 0.0, 0.0)
+            for ch in range(4):
+                n0 = table[base, ch] + w[0] * (table[base + x_step, ch] - table[base, ch])
+                n1 = table[base + y_step, ch] + w[0] * (table[base + y_step + x_step, ch] - table[base + y_step, ch])
+                n2 = table[base + z_step, ch] + w[0] * (table[base + z_step + x_step, ch] - table[base + z_step, ch])
+                n3 = table[base + z_step + y_step, ch] + w[0] * (
+                    table[base + z_step + y_step + x_step, ch] - table[base + z_step + y_step, ch])
+                near_z = n0 + w[1] * (n1 - n0)
+                far_z = n2 + w[1] * (n3 - n2)
+                values[ch] = near_z + w[2] * (far_z - near_z)
+            density = wp.max(values[0], 0.0)
+            tau = wp.clamp(density * delta * distance_scale, 0.0, max_optical)
+            weight = (1.0 - wp.exp(-tau)) * wp.exp(-optical_sum)
+            optical_sum = optical_sum + tau
+            accumulation = accumulation + weight
+            red = red + weight / (1.0 + wp.exp(-values[1]))
+            green = green + weight / (1.0 + wp.exp(-values[2]))
+            blue = blue + weight / (1.0 + wp.exp(-values[3]))
+            disparity = disparity + weight / ti
+        sums[r, 0] = accumulation
+        sums[r, 1] = red
+        sums[r, 2] = green
+        sums[r, 3] = blue
+        sums[r, 4] = disparity
+
+    return {"module": density_march.module, "density_march": density_march, "outer_composite": outer_composite}
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:
@@ -250,6 +326,12 @@ def _pool(threads: int) -> ThreadPoolExecutor:
         if _state.get("pool_threads") != threads:
             _state["pool"], _state["pool_threads"] = ThreadPoolExecutor(threads, "frugalnerf-march"), threads
         return _state["pool"]
+
+
+def _bytes(volume: Tensor) -> Tensor:
+    """A bool volume as uint8 without a copy (the same bytes; a frame reads the same volumes once per chunk)."""
+    volume = volume.contiguous()
+    return volume.view(torch.uint8) if volume.dtype == torch.bool else volume.to(torch.uint8)
 
 
 class MarchResult(NamedTuple):
@@ -291,7 +373,7 @@ def density_march(
         res = strides = wp.vec3i(1, 1, 1)
     else:
         padded, mask_aabb, shape, pad_strides = inside_mask
-        mask, has_mask = padded.to(torch.uint8).contiguous(), 1
+        mask, has_mask = _bytes(padded), 1
         mask_min, mask_max = (wp.vec3(*[float(v) for v in x]) for x in (mask_aabb[0], mask_aabb[1]))
         res, strides = wp.vec3i(*[int(v) for v in shape]), wp.vec3i(*[int(v) for v in pad_strides])
     o, d = o.to(torch.float32).contiguous(), d.to(torch.float32).contiguous()
@@ -302,7 +384,7 @@ def density_march(
     for k in range(2):
         if k < len(bounds):
             bound_k = bounds[k]
-            volume = bound_k.occupancy.to(torch.uint8).contiguous()
+            volume = _bytes(bound_k.occupancy)
             volumes.update({
                 f"occupancy{k}": wp.from_torch(volume), f"entries{k}": wp.vec3i(*[int(v) for v in bound_k.entries]),
                 f"a{k}": wp.vec3(*[float(v) for v in bound_k.a]), f"b{k}": wp.vec3(*[float(v) for v in bound_k.b]),
@@ -370,3 +452,31 @@ _ARGUMENT_ORDER = (
 def _ordered(inputs: dict, shared: dict) -> list:
     every = {**shared, **inputs}
     return [every[name] for name in _ARGUMENT_ORDER]
+
+
+def outer_composite(wp, table: Tensor, dims, centre: Tensor, half: Tensor, origins: Tensor, directions: Tensor,
+                    edges: Tensor, t: Tensor, distance_scale: float, max_optical: float) -> Tensor:
+    """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU, split over
+    torch's threads: [rays, 5] accumulation, colour sum (3), disparity sum."""
+    kernel = wp._frugalnerf_kernels["outer_composite"]
+    rays = origins.shape[0]
+    sums = torch.zeros(rays, 5, dtype=torch.float32)
+    o, d = origins.to(torch.float32).contiguous(), directions.to(torch.float32).contiguous()
+    edges, t = edges.to(torch.float32).contiguous(), t.to(torch.float32).contiguous()
+    table = table.to(torch.float32).contiguous()
+    shared = [wp.from_torch(table), wp.vec3i(*[int(v) for v in dims]), wp.vec3(*[float(v) for v in centre]),
+              wp.vec3(*[float(v) for v in half]), float(distance_scale), float(max_optical)]
+
+    def launch(lo: int, hi: int) -> None:
+        if hi > lo:
+            wp.launch(kernel, dim=hi - lo, device="cpu", inputs=[
+                wp.from_torch(o[lo:hi], dtype=wp.vec3), wp.from_torch(d[lo:hi], dtype=wp.vec3),
+                wp.from_torch(edges[lo:hi]), wp.from_torch(t[lo:hi]), *shared, wp.from_torch(sums[lo:hi])])
+
+    threads = max(1, min(torch.get_num_threads(), rays // 256))
+    bounds = [rays * k // threads for k in range(threads + 1)]
+    if threads == 1:
+        launch(0, rays)
+    else:
+        list(_pool(threads).map(lambda k: launch(bounds[k], bounds[k + 1]), range(threads)))
+    return sums
