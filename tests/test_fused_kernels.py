@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+from frugalnerf_ns.field.tensorial import coords_for_stride
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from frugalnerf_ns.model import fused_kernels
 from frugalnerf_ns.model.rendering import FAINT_BUDGET, render_scale_inference
@@ -117,3 +118,44 @@ def test_the_fused_outer_space_composites_as_torch_does():
         assert torch.allclose(a.rgb, b.rgb, atol=2e-5) and torch.allclose(a.accumulation, b.accumulation, atol=2e-5)
         assert torch.allclose(a.depth, b.depth, rtol=1e-4)
     assert 0.05 < float(reference[0].accumulation.mean()) < 0.95 and float(reference[1].accumulation.mean()) > 0.05
+
+
+@needs_warp
+@pytest.mark.parametrize("stretched", [False, True])
+@pytest.mark.parametrize("scale", [0, 1, 2])
+def test_the_fused_feature_read_gives_the_planes_colours(scale, stretched, monkeypatch):
+    from frugalnerf_ns.field import radiance_field
+
+    field = FrugalNeRFField(AABB_FEATURES, (21, 26, 19), density_components=(2, 2, 2), appearance_components=(5, 3, 2),
+                            mlp_hidden_dim=16, mlp_implementation="torch", lower_scale_reading="stretched" if stretched
+                            else "aligned")
+    with torch.no_grad():
+        for tensor in [*field.appearance_grid.planes, *field.appearance_grid.lines]:
+            tensor.normal_(0.0, 1.5)
+    monkeypatch.setattr(radiance_field, "BAKED_FEATURES_MAX_ENTRIES", 0)  # as a grid too large to bake
+    assert field.baked_features(scale) is None
+    generator = torch.Generator().manual_seed(9)
+    positions = (torch.rand(3000, 3, generator=generator) * 2.4 - 1.2) * AABB_FEATURES[1]  # some beyond the box
+    directions = torch.nn.functional.normalize(torch.randn(3000, 3, generator=generator), dim=-1)
+    with torch.no_grad():
+        ours = field.inference_color(positions, directions, scale, wp)
+        reference = field.color(positions, directions, scale)
+        assert torch.allclose(ours, reference, atol=1e-5)
+        # The features the kernel reads, against the planes' and lines' reads they replace.
+        coords = field.normalize(positions)
+        products = torch.cat(field.appearance_grid.plane_line_products(coords, field.stride(scale), stretched), dim=-1)
+        key = ("channels last", field.stride(scale))
+        mapped = coords if stretched else torch.stack(
+            [coords_for_stride(coords[:, i], field.appearance_grid.resolution_tuple[i], field.stride(scale))
+             for i in range(3)], dim=-1)
+        fused = fused_kernels.vm_features(wp, field._channels_last[key][1], mapped)
+        assert torch.allclose(fused, products, atol=1e-5) and float(products.std()) > 0.5
+        # A parameter changed after the first read: the channels-last copies follow it.
+        for plane in field.appearance_grid.planes:
+            plane.normal_(0.0, 1.5)
+        assert torch.allclose(field.inference_color(positions, directions, scale, wp),
+                              field.color(positions, directions, scale), atol=1e-5)
+        assert not torch.allclose(fused_kernels.vm_features(wp, field._channels_last[key][1], mapped), fused, atol=0.1)
+
+
+AABB_FEATURES = torch.tensor([[-1.0, -0.8, -1.2], [1.0, 0.8, 1.2]])

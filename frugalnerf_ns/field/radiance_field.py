@@ -17,7 +17,14 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
-from frugalnerf_ns.field.tensorial import OptimizerState, TensorVMGrid, read_node_sum, strided_length, trilinear_rows
+from frugalnerf_ns.field.tensorial import (
+    OptimizerState,
+    TensorVMGrid,
+    coords_for_stride,
+    read_node_sum,
+    strided_length,
+    trilinear_rows,
+)
 
 DensityActivation = Literal["relu", "softplus"]
 LowerScaleReading = Literal["aligned", "stretched"]
@@ -149,6 +156,7 @@ class FrugalNeRFField(nn.Module):
         self._baked_cache: Tuple[tuple, Dict] = ((), {})
         self._features_cache: Tuple[tuple, Dict] = ((), {})
         self._mask_cache: Tuple[tuple, tuple] = ((), ())
+        self._channels_last: Dict[tuple, tuple] = {}  # per stride: (parameter versions, fused kernels' tables)
         # Inside ``shared_density_nodes``: a one-entry list holding the density nodes once the first read made them.
         self._shared_nodes: Optional[List[Optional[Tensor]]] = None
 
@@ -300,11 +308,26 @@ class FrugalNeRFField(nn.Module):
 
     @torch.no_grad()
     def inference_color(
-        self, positions: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], scale: int = 0
+        self, positions: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], scale: int = 0, kernels=None
     ) -> Float[Tensor, "n 3"]:
         """``color`` outside training: the features read from ``baked_features`` (8 row gathers per point
-        instead of three planes, three lines and the basis; equal to float rounding)."""
+        instead of three planes, three lines and the basis; equal to float rounding). A grid too large to bake
+        reads its planes, with ``kernels`` (the fused kernels' warp module, on the CPU) in one fused kernel on
+        channels-last copies of the scale's planes and lines."""
         baked = self.baked_features(scale)
+        if baked is None and kernels is not None and positions.device.type == "cpu":
+            from frugalnerf_ns.model import fused_kernels
+
+            stride, res = self.stride(scale), self.appearance_grid.resolution_tuple
+            coords = self.normalize(positions)
+            if not self.stretched:
+                coords = torch.stack([coords_for_stride(coords[:, i], res[i], stride) for i in range(3)], dim=-1)
+            key = ("channels last", stride)
+            current = self._versions([*self.appearance_grid.planes, *self.appearance_grid.lines])
+            if self._channels_last.get(key, (None,))[0] != current:
+                self._channels_last[key] = (current, fused_kernels.channels_last(*self.appearance_grid.scale_views(stride)))
+            products = fused_kernels.vm_features(kernels, self._channels_last[key][1], coords).to(positions.dtype)
+            return self.color_mlp(self.appearance_basis(products), directions)
         if baked is None:
             return self.color(positions, directions, scale)
         table, dims, a, b = baked

@@ -317,7 +317,50 @@ def _define_kernels(wp) -> dict:
         sums[r, 3] = blue
         sums[r, 4] = disparity
 
-    return {"module": density_march.module, "density_march": density_march, "outer_composite": outer_composite}
+    @wp.func
+    def plane_line_product(plane: wp.array2d(dtype=wp.float32), width: int, height: int,
+                           line: wp.array2d(dtype=wp.float32), x: wp.float32, y: wp.float32, z: wp.float32,
+                           out: wp.array2d(dtype=wp.float32), row: int, offset: int):
+        # sample_plane (bilinear, align_corners, border) times sample_line (linear) per component, channels last.
+        fx = wp.clamp((x + 1.0) * 0.5 * float(width - 1), 0.0, float(width - 1))
+        fy = wp.clamp((y + 1.0) * 0.5 * float(height - 1), 0.0, float(height - 1))
+        length = line.shape[0]
+        fz = wp.clamp((z + 1.0) * 0.5 * float(length - 1), 0.0, float(length - 1))
+        x0 = int(wp.floor(fx))
+        y0 = int(wp.floor(fy))
+        z0 = wp.min(int(wp.floor(fz)), wp.max(length - 2, 0))
+        tx = fx - float(x0)
+        ty = fy - float(y0)
+        tz = fz - float(z0)
+        x1 = wp.min(x0 + 1, width - 1)
+        y1 = wp.min(y0 + 1, height - 1)
+        z1 = wp.min(z0 + 1, length - 1)
+        r00 = y0 * width + x0
+        r01 = y0 * width + x1
+        r10 = y1 * width + x0
+        r11 = y1 * width + x1
+        for c in range(plane.shape[1]):
+            value = (plane[r00, c] * (1.0 - tx) + plane[r01, c] * tx) * (1.0 - ty) + (
+                plane[r10, c] * (1.0 - tx) + plane[r11, c] * tx) * ty
+            out[row, offset + c] = value * (line[z0, c] + tz * (line[z1, c] - line[z0, c]))
+
+    @wp.kernel
+    def vm_features(
+        coords: wp.array(dtype=wp.vec3),
+        plane0: wp.array2d(dtype=wp.float32), width0: int, height0: int, line0: wp.array2d(dtype=wp.float32),
+        plane1: wp.array2d(dtype=wp.float32), width1: int, height1: int, line1: wp.array2d(dtype=wp.float32),
+        plane2: wp.array2d(dtype=wp.float32), width2: int, height2: int, line2: wp.array2d(dtype=wp.float32),
+        out: wp.array2d(dtype=wp.float32),
+    ):
+        # TensorVMGrid.plane_line_products, concatenated: planes XY, XZ, YZ with lines Z, Y, X (PLANE_AXES).
+        i = wp.tid()
+        c = coords[i]
+        plane_line_product(plane0, width0, height0, line0, c[0], c[1], c[2], out, i, 0)
+        plane_line_product(plane1, width1, height1, line1, c[0], c[2], c[1], out, i, plane0.shape[1])
+        plane_line_product(plane2, width2, height2, line2, c[1], c[2], c[0], out, i, plane0.shape[1] + plane1.shape[1])
+
+    return {"module": density_march.module, "density_march": density_march, "outer_composite": outer_composite,
+            "vm_features": vm_features}
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:
@@ -480,3 +523,37 @@ def outer_composite(wp, table: Tensor, dims, centre: Tensor, half: Tensor, origi
     else:
         list(_pool(threads).map(lambda k: launch(bounds[k], bounds[k + 1]), range(threads)))
     return sums
+
+
+def channels_last(planes, lines) -> list:
+    """Planes [1, C, H, W] and lines [1, C, L, 1] (strided views included) as the [H*W, C] and [L, C] tables
+    ``vm_features`` reads (a corner's components side by side)."""
+    tables = []
+    for plane, line in zip(planes, lines):
+        _, comps, height, width = plane.shape
+        tables.append((plane[0].permute(1, 2, 0).reshape(height * width, comps).to(torch.float32).contiguous(),
+                       width, height, line[0, :, :, 0].T.to(torch.float32).contiguous()))
+    return tables
+
+
+def vm_features(wp, tables: list, coords: Tensor) -> Tensor:
+    """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
+    ``channels_last`` tables, on the CPU, split over torch's threads."""
+    kernel = wp._frugalnerf_kernels["vm_features"]
+    n = coords.shape[0]
+    out = torch.empty(n, sum(t[0].shape[1] for t in tables), dtype=torch.float32)
+    coords = coords.to(torch.float32).contiguous()
+    shared = [x for plane, width, height, line in tables for x in (wp.from_torch(plane), width, height, wp.from_torch(line))]
+
+    def launch(lo: int, hi: int) -> None:
+        if hi > lo:
+            wp.launch(kernel, dim=hi - lo, device="cpu",
+                      inputs=[wp.from_torch(coords[lo:hi], dtype=wp.vec3), *shared, wp.from_torch(out[lo:hi])])
+
+    threads = max(1, min(torch.get_num_threads(), n // 1024))
+    bounds = [n * k // threads for k in range(threads + 1)]
+    if threads == 1:
+        launch(0, n)
+    else:
+        list(_pool(threads).map(lambda k: launch(bounds[k], bounds[k + 1]), range(threads)))
+    return out

@@ -218,7 +218,7 @@ def render_scale_inference(
         if fused.rays.numel():
             rows, t = fused.rays, fused.t.to(compute)
             positions = o[rows] + d[rows] * t[:, None]
-            colors = field_.inference_color(positions, d[rows], scale).to(compute)
+            colors = field_.inference_color(positions, d[rows], scale, kernels).to(compute)
             rgb = torch.zeros(ids.numel(), 3, device=device, dtype=compute)
             rgb.index_add_(0, rows, colors * fused.weights.to(compute)[:, None])
             sums[ids, 2:5] = rgb
