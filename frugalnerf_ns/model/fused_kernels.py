@@ -12,8 +12,9 @@ the samples to shade (t, weight) in the ray's share of one list; the colour MLP 
 frame in a few dozen element-wise passes over every marched slot and in the bookkeeping of its packed rays;
 here a slot costs one pass of registers and a ray stops where it terminates.
 
-Warp's CPU kernels run on one thread; the rays are split over ``torch.get_num_threads()`` Python threads (a
-launch releases the GIL)."""
+Warp's CPU kernels run on one thread, and here two Python threads launching halves of the rays took longer than one
+(a fern frame's march 0.43 -> 0.52 s, its feature reads 0.37 -> 0.46 s): each kernel runs on one core while torch's
+colour MLP uses all of them."""
 
 from __future__ import annotations
 
@@ -22,7 +23,6 @@ import os
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Iterator, NamedTuple, Optional, Tuple
 
 import torch
@@ -363,14 +363,6 @@ def _define_kernels(wp) -> dict:
             "vm_features": vm_features}
 
 
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """One pool per thread count for the process (a frame launches the march once per chunk of rays)."""
-    with _lock:
-        if _state.get("pool_threads") != threads:
-            _state["pool"], _state["pool_threads"] = ThreadPoolExecutor(threads, "frugalnerf-march"), threads
-        return _state["pool"]
-
-
 def _bytes(volume: Tensor) -> Tensor:
     """A bool volume as uint8 without a copy (the same bytes; a frame reads the same volumes once per chunk)."""
     volume = volume.contiguous()
@@ -393,7 +385,7 @@ def density_march(
     step: float, num_samples: int, group: int, per_block: int, delta: float, weight_threshold: float,
     faint_weight: float, faint_budget: float, stop_optical: float, max_optical: float,
 ) -> MarchResult:
-    """Run ``density_march`` over the rays (float32, on the CPU), split over torch's threads. ``bounds``: the
+    """Run ``density_march`` over the rays (float32, on the CPU). ``bounds``: the
     volumes a group is looked up in (``BakedDensity.group_bounds``, at most two); ``inside_mask``: (padded flat
     mask, its aabb, its unpadded shape, the padded strides) or None."""
     kernel = wp._frugalnerf_kernels["density_march"]
@@ -462,14 +454,7 @@ def density_march(
         )
         wp.launch(kernel, dim=hi - lo, inputs=_ordered(inputs, shared), device="cpu")
 
-    threads = max(1, min(torch.get_num_threads(), rays // 256))
-    if threads == 1:
-        launch(0, rays)
-    else:
-        # Equal shares of marched slots (the work), not of rays.
-        cuts = torch.searchsorted(starts, torch.linspace(0, total, threads + 1)[1:-1].to(torch.int64)).tolist()
-        bounds = [0, *[min(max(c, 0), rays) for c in cuts], rays]
-        list(_pool(threads).map(lambda k: launch(bounds[k], bounds[k + 1]), range(threads)))
+    launch(0, rays)
     if total == 0:
         empty = torch.zeros(0, dtype=torch.float32)
         return MarchResult(sums[:, 0], sums[:, 1], torch.zeros(0, dtype=torch.int64), empty, empty)
@@ -499,8 +484,8 @@ def _ordered(inputs: dict, shared: dict) -> list:
 
 def outer_composite(wp, table: Tensor, dims, centre: Tensor, half: Tensor, origins: Tensor, directions: Tensor,
                     edges: Tensor, t: Tensor, distance_scale: float, max_optical: float) -> Tensor:
-    """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU, split over
-    torch's threads: [rays, 5] accumulation, colour sum (3), disparity sum."""
+    """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU:
+    [rays, 5] accumulation, colour sum (3), disparity sum."""
     kernel = wp._frugalnerf_kernels["outer_composite"]
     rays = origins.shape[0]
     sums = torch.zeros(rays, 5, dtype=torch.float32)
@@ -516,12 +501,7 @@ def outer_composite(wp, table: Tensor, dims, centre: Tensor, half: Tensor, origi
                 wp.from_torch(o[lo:hi], dtype=wp.vec3), wp.from_torch(d[lo:hi], dtype=wp.vec3),
                 wp.from_torch(edges[lo:hi]), wp.from_torch(t[lo:hi]), *shared, wp.from_torch(sums[lo:hi])])
 
-    threads = max(1, min(torch.get_num_threads(), rays // 256))
-    bounds = [rays * k // threads for k in range(threads + 1)]
-    if threads == 1:
-        launch(0, rays)
-    else:
-        list(_pool(threads).map(lambda k: launch(bounds[k], bounds[k + 1]), range(threads)))
+    launch(0, rays)
     return sums
 
 
@@ -538,7 +518,7 @@ def channels_last(planes, lines) -> list:
 
 def vm_features(wp, tables: list, coords: Tensor) -> Tensor:
     """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
-    ``channels_last`` tables, on the CPU, split over torch's threads."""
+    ``channels_last`` tables, on the CPU."""
     kernel = wp._frugalnerf_kernels["vm_features"]
     n = coords.shape[0]
     out = torch.empty(n, sum(t[0].shape[1] for t in tables), dtype=torch.float32)
@@ -550,10 +530,5 @@ def vm_features(wp, tables: list, coords: Tensor) -> Tensor:
             wp.launch(kernel, dim=hi - lo, device="cpu",
                       inputs=[wp.from_torch(coords[lo:hi], dtype=wp.vec3), *shared, wp.from_torch(out[lo:hi])])
 
-    threads = max(1, min(torch.get_num_threads(), n // 1024))
-    bounds = [n * k // threads for k in range(threads + 1)]
-    if threads == 1:
-        launch(0, n)
-    else:
-        list(_pool(threads).map(lambda k: launch(bounds[k], bounds[k + 1]), range(threads)))
+    launch(0, n)
     return out
