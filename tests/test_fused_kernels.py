@@ -8,10 +8,10 @@ import torch
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.field.tensorial import coords_for_stride
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
-from frugalnerf_ns.model import fused_kernels
+from frugalnerf_ns.field import fused_kernels
 from frugalnerf_ns.model.rendering import FAINT_BUDGET, render_scale_inference
-from frugalnerf_ns.run.options import OptionError
-from tests.test_inference_render import SETTINGS, opaque_field, rays
+from frugalnerf_ns.errors import UserError
+from tests.marching_scenes import SETTINGS, opaque_field, rays
 
 wp = fused_kernels.warp_kernels("auto")
 needs_warp = pytest.mark.skipif(wp is None, reason="Warp does not compile on this machine")
@@ -90,7 +90,7 @@ def test_without_warp_auto_falls_back_to_torch_with_one_line_and_warp_is_an_opti
     assert said == ["frugalnerf: fused kernels unavailable (RuntimeError: no compiler here): rendering with the torch "
                     "path"]
     assert fused_kernels.warp_kernels("auto", said.append) is None and len(said) == 1  # said once per process
-    with pytest.raises(OptionError, match="--pipeline.model.kernels warp: Warp cannot be used here"):
+    with pytest.raises(UserError, match="--pipeline.model.kernels warp: Warp cannot be used here"):
         fused_kernels.warp_kernels("warp", said.append)
     assert fused_kernels.warp_kernels("torch", said.append) is None
 

@@ -55,7 +55,7 @@ def main(argv=None) -> list:
     from nerfstudio.utils.eval_utils import eval_setup
     from frugalnerf_ns.scoring.lpips_offline import OfflineLPIPS
     from frugalnerf_ns.tools.offline_tools import score_test_view
-    from frugalnerf_ns.model.fused_kernels import warp_kernels
+    from frugalnerf_ns.field.fused_kernels import warp_kernels
     from frugalnerf_ns.tools.video import scene_video_cameras
 
     _, pipeline, _, _ = eval_setup(args.config, test_mode="test")

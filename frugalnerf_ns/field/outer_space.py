@@ -130,10 +130,10 @@ class OuterSpace(nn.Module):
     ) -> Tuple[Optional[Tensor], Tensor, Tensor, Tensor]:
         """Weights, accumulation, colour sum and disparity sum of samples ``t`` in bins ``edges`` along each ray;
         each sample's share of the ray is its bin's length in the contracted space. ``kernels`` (outside training,
-        rays on the CPU): one fused kernel (``model.fused_kernels.outer_composite``), no per-sample weights."""
+        rays on the CPU): one fused kernel (``field.fused_kernels.outer_composite``), no per-sample weights."""
         rays = origins.shape[0]
         if kernels is not None and not torch.is_grad_enabled() and origins.device.type == "cpu":
-            from frugalnerf_ns.model.fused_kernels import outer_composite
+            from frugalnerf_ns.field.fused_kernels import outer_composite
 
             dims = self.density_grid.resolution_tuple[::-1]
             sums = outer_composite(kernels, self._baked_nodes(), dims, self.centre, self.half_size, origins, directions,

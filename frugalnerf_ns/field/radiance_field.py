@@ -316,7 +316,7 @@ class FrugalNeRFField(nn.Module):
         channels-last copies of the scale's planes and lines."""
         baked = self.baked_features(scale)
         if baked is None and kernels is not None and positions.device.type == "cpu":
-            from frugalnerf_ns.model import fused_kernels
+            from frugalnerf_ns.field import fused_kernels
 
             stride, res = self.stride(scale), self.appearance_grid.resolution_tuple
             coords = self.normalize(positions)

@@ -44,7 +44,7 @@ from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.model.objective import ReferenceViews
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
-from frugalnerf_ns.model.fused_kernels import warp_kernels
+from frugalnerf_ns.field.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import StepRender, render_scale, render_scale_inference, scale_suffix
 from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.model.training_schedule import training_callbacks

@@ -19,7 +19,7 @@ from jaxtyping import Bool, Float
 from torch import Tensor
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
-from frugalnerf_ns.model import fused_kernels
+from frugalnerf_ns.field import fused_kernels
 from frugalnerf_ns.model.geometric_adaptation import AdaptationResult
 from frugalnerf_ns.geometry.raymarch import (
     MAX_OPTICAL_DEPTH,

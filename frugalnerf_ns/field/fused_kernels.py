@@ -28,6 +28,8 @@ from typing import Callable, Iterator, NamedTuple, Optional, Tuple
 import torch
 from torch import Tensor
 
+from frugalnerf_ns.errors import UserError
+
 KERNEL_CHOICES = ("auto", "warp", "torch")
 
 _state: dict = {}
@@ -93,9 +95,7 @@ def warp_kernels(choice: str, say: Callable[[str], None] = print):
                 if choice == "auto":
                     say(f"frugalnerf: fused kernels unavailable ({_state['why']}): rendering with the torch path")
     if _state["warp"] is None and choice == "warp":
-        from frugalnerf_ns.run.options import OptionError
-
-        raise OptionError(f"--pipeline.model.kernels warp: Warp cannot be used here ({_state['why']})")
+        raise UserError(f"--pipeline.model.kernels warp: Warp cannot be used here ({_state['why']})")
     return _state["warp"]
 
 
