@@ -30,36 +30,38 @@ from torch import Tensor
 
 from frugalnerf_ns.errors import UserError
 
-KERNEL_CHOICES = ("auto", "warp", "torch")
-
 _state: dict = {}
 _lock = threading.Lock()
 
 
-def _load_warp(say: Callable[[str], None]):
-    """The warp module with this file's kernels compiled for the CPU (and CUDA when a driver is there), or raise
-    with the reason. The kernel cache goes to the user's cache folder (``cache.user_cache_root``); a compile
-    (first use of a version) is said in one line with its seconds."""
+class WarpKernels(NamedTuple):
+    """Warp (the module) and this file's kernels, compiled for the CPU: what ``warp_kernels`` hands the renderer."""
+
+    wp: object
+    kernels: dict
+
+
+def _load_warp(say: Callable[[str], None]) -> WarpKernels:
+    """Warp with this file's kernels compiled for the CPU, or raise with the reason. The kernel cache goes to the
+    user's cache folder (``cache.user_cache_root``); a compile (first use of a Warp version) is said in one line
+    with its seconds."""
     import warp as wp
 
     from frugalnerf_ns.cache import user_cache_root
 
-    if not getattr(wp, "_frugalnerf_ready", False):
-        wp.config.kernel_cache_dir = str(user_cache_root() / "warp")
-        wp.config.log_level = 30  # warnings only: no lines per module loaded
-        wp.config.verbose_warnings = False
-        with _native_stderr_silenced(not torch.cuda.is_available()):
-            wp.init()  # without a GPU its driver probe writes a warning on the C stderr: nothing to tell
-        kernels = _define_kernels(wp)
-        start = time.perf_counter()
-        wp.load_module(kernels["module"], device="cpu")
-        seconds = time.perf_counter() - start
-        if seconds > 0.5:
-            say(f"frugalnerf: compiled the fused kernels in {seconds:.1f} s (once per Warp version; cached in "
-                f"{wp.config.kernel_cache_dir})")
-        wp._frugalnerf_kernels = kernels
-        wp._frugalnerf_ready = True
-    return wp
+    wp.config.kernel_cache_dir = str(user_cache_root() / "warp")
+    wp.config.log_level = 30  # warnings only: no lines per module loaded
+    wp.config.verbose_warnings = False
+    with _native_stderr_silenced(not torch.cuda.is_available()):
+        wp.init()  # without a GPU its driver probe writes a warning on the C stderr: nothing to tell
+    kernels = _define_kernels(wp)
+    start = time.perf_counter()
+    wp.load_module(kernels["module"], device="cpu")
+    seconds = time.perf_counter() - start
+    if seconds > 0.5:
+        say(f"frugalnerf: compiled the fused kernels in {seconds:.1f} s (once per Warp version; cached in "
+            f"{wp.config.kernel_cache_dir})")
+    return WarpKernels(wp, kernels)
 
 
 @contextlib.contextmanager
@@ -79,9 +81,10 @@ def _native_stderr_silenced(enabled: bool) -> Iterator[None]:
         os.close(saved)
 
 
-def warp_kernels(choice: str, say: Callable[[str], None] = print):
-    """The warp module for ``--pipeline.model.kernels`` ``choice``: None for "torch"; for "auto", None with one
-    line when Warp cannot be imported or compiled; for "warp", that failure raises."""
+def warp_kernels(choice: str, say: Callable[[str], None] = print) -> Optional[WarpKernels]:
+    """The compiled kernels for ``--pipeline.model.kernels`` ``choice`` (loaded once per process): None for
+    "torch"; for "auto", None with one line when Warp cannot be imported or compiled; for "warp", that failure
+    raises."""
     if choice == "torch":
         return None
     with _lock:
@@ -380,7 +383,7 @@ class MarchResult(NamedTuple):
 
 
 def density_march(
-    wp, baked, aabb: Tensor, inside_mask: Optional[Tuple[Tensor, Tensor, Tensor, Tensor]],
+    fused: WarpKernels, baked, aabb: Tensor, inside_mask: Optional[Tuple[Tensor, Tensor, Tensor, Tensor]],
     o: Tensor, d: Tensor, t_near: Tensor, t_far: Tensor, bounds: list,
     step: float, num_samples: int, group: int, per_block: int, delta: float, weight_threshold: float,
     faint_weight: float, faint_budget: float, stop_optical: float, max_optical: float,
@@ -388,7 +391,7 @@ def density_march(
     """Run ``density_march`` over the rays (float32, on the CPU). ``bounds``: the
     volumes a group is looked up in (``BakedDensity.group_bounds``, at most two); ``inside_mask``: (padded flat
     mask, its aabb, its unpadded shape, the padded strides) or None."""
-    kernel = wp._frugalnerf_kernels["density_march"]
+    wp, kernel = fused.wp, fused.kernels["density_march"]
     rays = o.shape[0]
     num_groups = -(-num_samples // group)
     # A ray shades at most the slots of the groups that start in its segment (one more against rounding).
@@ -482,11 +485,11 @@ def _ordered(inputs: dict, shared: dict) -> list:
     return [every[name] for name in _ARGUMENT_ORDER]
 
 
-def outer_composite(wp, table: Tensor, dims, centre: Tensor, half: Tensor, origins: Tensor, directions: Tensor,
+def outer_composite(fused: WarpKernels, table: Tensor, dims, centre: Tensor, half: Tensor, origins: Tensor, directions: Tensor,
                     edges: Tensor, t: Tensor, distance_scale: float, max_optical: float) -> Tensor:
     """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU:
     [rays, 5] accumulation, colour sum (3), disparity sum."""
-    kernel = wp._frugalnerf_kernels["outer_composite"]
+    wp, kernel = fused.wp, fused.kernels["outer_composite"]
     rays = origins.shape[0]
     sums = torch.zeros(rays, 5, dtype=torch.float32)
     o, d = origins.to(torch.float32).contiguous(), directions.to(torch.float32).contiguous()
@@ -516,10 +519,10 @@ def channels_last(planes, lines) -> list:
     return tables
 
 
-def vm_features(wp, tables: list, coords: Tensor) -> Tensor:
+def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Tensor:
     """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
     ``channels_last`` tables, on the CPU."""
-    kernel = wp._frugalnerf_kernels["vm_features"]
+    wp, kernel = fused.wp, fused.kernels["vm_features"]
     n = coords.shape[0]
     out = torch.empty(n, sum(t[0].shape[1] for t in tables), dtype=torch.float32)
     coords = coords.to(torch.float32).contiguous()

@@ -312,7 +312,7 @@ class FrugalNeRFField(nn.Module):
     ) -> Float[Tensor, "n 3"]:
         """``color`` outside training: the features read from ``baked_features`` (8 row gathers per point
         instead of three planes, three lines and the basis; equal to float rounding). A grid too large to bake
-        reads its planes, with ``kernels`` (the fused kernels' warp module, on the CPU) in one fused kernel on
+        reads its planes, with ``kernels`` (``fused_kernels.warp_kernels``, on the CPU) in one fused kernel on
         channels-last copies of the scale's planes and lines."""
         baked = self.baked_features(scale)
         if baked is None and kernels is not None and positions.device.type == "cpu":

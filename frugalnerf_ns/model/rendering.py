@@ -192,7 +192,7 @@ def render_scale_inference(
     of the occupied slots); colour only at the slots whose weight passes the threshold, added per ray. The
     state of the rays still marching is kept packed, and a ray's sums are written out when it leaves.
 
-    ``kernels`` (the warp module of ``fused_kernels.warp_kernels``; None: torch): the density pass as one fused
+    ``kernels`` (``fused_kernels.warp_kernels``; None: torch): the density pass as one fused
     kernel (``fused_kernels.density_march``, the same samples, weights and samples to shade) and the colour of
     every sample to shade in one batch, where the density is baked and the rays are on the CPU."""
     step = field_.sample_step(scale, step_ratio)
