@@ -104,25 +104,24 @@ def warp_kernels(choice: str, say: Callable[[str], None] = print) -> Optional[Wa
 
 def _define_kernels(wp) -> dict:
     """Build the kernels (a function so that importing this module never imports warp)."""
+    # Warp evaluates the kernels' annotations (strings under ``from __future__ import annotations``) in this
+    # module's globals, some only when a caller is compiled: ``wp`` must be found there.
+    globals()["wp"] = wp
+
+    @wp.func
+    def corners(coord: wp.float32, size: int):
+        # One axis of a corner-aligned, border-clamped read ([-1, 1] over ``size`` entries): the lower entry, the
+        # upper one and the weight toward it (tensorial._axis_corners' rule).
+        f = wp.clamp((coord + 1.0) * 0.5 * float(size - 1), 0.0, float(size - 1))
+        low = wp.min(int(wp.floor(f)), wp.max(size - 2, 0))
+        return low, wp.min(low + 1, size - 1), f - float(low)
 
     @wp.func
     def read_density(grid: wp.array3d(dtype=wp.float32), p: wp.vec3, a: wp.vec3, b: wp.vec3, relu: int) -> wp.float32:
         # grid_sample, align_corners=True, padding_mode="border": coords (x, y, z) in [-1, 1] -> grid[z, y, x].
-        sx = grid.shape[2]
-        sy = grid.shape[1]
-        sz = grid.shape[0]
-        fx = wp.clamp((p[0] * a[0] + b[0] + 1.0) * 0.5 * float(sx - 1), 0.0, float(sx - 1))
-        fy = wp.clamp((p[1] * a[1] + b[1] + 1.0) * 0.5 * float(sy - 1), 0.0, float(sy - 1))
-        fz = wp.clamp((p[2] * a[2] + b[2] + 1.0) * 0.5 * float(sz - 1), 0.0, float(sz - 1))
-        x0 = int(wp.floor(fx))
-        y0 = int(wp.floor(fy))
-        z0 = int(wp.floor(fz))
-        tx = fx - float(x0)
-        ty = fy - float(y0)
-        tz = fz - float(z0)
-        x1 = wp.min(x0 + 1, sx - 1)
-        y1 = wp.min(y0 + 1, sy - 1)
-        z1 = wp.min(z0 + 1, sz - 1)
+        x0, x1, tx = corners(p[0] * a[0] + b[0], grid.shape[2])
+        y0, y1, ty = corners(p[1] * a[1] + b[1], grid.shape[1])
+        z0, z1, tz = corners(p[2] * a[2] + b[2], grid.shape[0])
         c00 = grid[z0, y0, x0] * (1.0 - tx) + grid[z0, y0, x1] * tx
         c01 = grid[z0, y1, x0] * (1.0 - tx) + grid[z0, y1, x1] * tx
         c10 = grid[z1, y0, x0] * (1.0 - tx) + grid[z1, y0, x1] * tx
@@ -325,19 +324,9 @@ def _define_kernels(wp) -> dict:
                            line: wp.array2d(dtype=wp.float32), x: wp.float32, y: wp.float32, z: wp.float32,
                            out: wp.array2d(dtype=wp.float32), row: int, offset: int):
         # sample_plane (bilinear, align_corners, border) times sample_line (linear) per component, channels last.
-        fx = wp.clamp((x + 1.0) * 0.5 * float(width - 1), 0.0, float(width - 1))
-        fy = wp.clamp((y + 1.0) * 0.5 * float(height - 1), 0.0, float(height - 1))
-        length = line.shape[0]
-        fz = wp.clamp((z + 1.0) * 0.5 * float(length - 1), 0.0, float(length - 1))
-        x0 = int(wp.floor(fx))
-        y0 = int(wp.floor(fy))
-        z0 = wp.min(int(wp.floor(fz)), wp.max(length - 2, 0))
-        tx = fx - float(x0)
-        ty = fy - float(y0)
-        tz = fz - float(z0)
-        x1 = wp.min(x0 + 1, width - 1)
-        y1 = wp.min(y0 + 1, height - 1)
-        z1 = wp.min(z0 + 1, length - 1)
+        x0, x1, tx = corners(x, width)
+        y0, y1, ty = corners(y, height)
+        z0, z1, tz = corners(z, line.shape[0])
         r00 = y0 * width + x0
         r01 = y0 * width + x1
         r10 = y1 * width + x0
