@@ -435,18 +435,13 @@ def density_march(
         shade_w=wp.from_torch(shade_w),
     )
 
-    def launch(lo: int, hi: int) -> None:
-        if hi <= lo:
-            return
+    if rays:
         inputs = dict(
-            origins=wp.from_torch(o[lo:hi], dtype=wp.vec3), directions=wp.from_torch(d[lo:hi], dtype=wp.vec3),
-            t_near=wp.from_torch(t_near[lo:hi]), t_far=wp.from_torch(t_far[lo:hi]),
-            outputs_at=wp.from_torch(outputs_at[lo:hi]),
-            sums=wp.from_torch(sums[lo:hi]),
+            origins=wp.from_torch(o, dtype=wp.vec3), directions=wp.from_torch(d, dtype=wp.vec3),
+            t_near=wp.from_torch(t_near), t_far=wp.from_torch(t_far), outputs_at=wp.from_torch(outputs_at),
+            sums=wp.from_torch(sums),
         )
-        wp.launch(kernel, dim=hi - lo, inputs=_ordered(inputs, shared), device="cpu")
-
-    launch(0, rays)
+        wp.launch(kernel, dim=rays, inputs=_ordered(inputs, shared), device="cpu")
     if total == 0:
         empty = torch.zeros(0, dtype=torch.float32)
         return MarchResult(sums[:, 0], sums[:, 1], torch.zeros(0, dtype=torch.int64), empty, empty)
@@ -487,13 +482,10 @@ def outer_composite(fused: WarpKernels, table: Tensor, dims, centre: Tensor, hal
     shared = [wp.from_torch(table), wp.vec3i(*[int(v) for v in dims]), wp.vec3(*[float(v) for v in centre]),
               wp.vec3(*[float(v) for v in half]), float(distance_scale), float(max_optical)]
 
-    def launch(lo: int, hi: int) -> None:
-        if hi > lo:
-            wp.launch(kernel, dim=hi - lo, device="cpu", inputs=[
-                wp.from_torch(o[lo:hi], dtype=wp.vec3), wp.from_torch(d[lo:hi], dtype=wp.vec3),
-                wp.from_torch(edges[lo:hi]), wp.from_torch(t[lo:hi]), *shared, wp.from_torch(sums[lo:hi])])
-
-    launch(0, rays)
+    if rays:
+        wp.launch(kernel, dim=rays, device="cpu", inputs=[
+            wp.from_torch(o, dtype=wp.vec3), wp.from_torch(d, dtype=wp.vec3), wp.from_torch(edges), wp.from_torch(t),
+            *shared, wp.from_torch(sums)])
     return sums
 
 
@@ -517,10 +509,6 @@ def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Tensor:
     coords = coords.to(torch.float32).contiguous()
     shared = [x for plane, width, height, line in tables for x in (wp.from_torch(plane), width, height, wp.from_torch(line))]
 
-    def launch(lo: int, hi: int) -> None:
-        if hi > lo:
-            wp.launch(kernel, dim=hi - lo, device="cpu",
-                      inputs=[wp.from_torch(coords[lo:hi], dtype=wp.vec3), *shared, wp.from_torch(out[lo:hi])])
-
-    launch(0, n)
+    if n:
+        wp.launch(kernel, dim=n, device="cpu", inputs=[wp.from_torch(coords, dtype=wp.vec3), *shared, wp.from_torch(out)])
     return out
