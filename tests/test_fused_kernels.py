@@ -51,6 +51,17 @@ def test_the_fused_march_renders_the_torch_marchers_pixels(scale, mask):
 
 
 @needs_warp
+def test_rays_that_all_miss_the_box_and_no_rays_at_all():
+    field = opaque_field(mask=True)
+    origins = torch.tensor([[0.0, 0.0, 2.5]]).repeat(10, 1)
+    away = torch.tensor([[0.0, 0.0, 1.0]]).repeat(10, 1)
+    ours = render(field, 0, wp, origins, away)
+    close(ours, render(field, 0, None, origins, away))
+    assert torch.equal(ours.rgb, torch.tensor([[0.2, 0.5, 1.0]]).repeat(10, 1))  # the background alone
+    assert render(field, 0, wp, origins[:0], away[:0]).rgb.shape == (0, 3)
+
+
+@needs_warp
 def test_softplus_density_rays_from_inside_the_box_and_a_hazy_field():
     torch.manual_seed(4)
     field = FrugalNeRFField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), (20, 22, 18),

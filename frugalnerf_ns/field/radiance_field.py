@@ -527,7 +527,9 @@ class BakedDensity:
         """The volumes ``occupied_groups`` looks each group up in, for these rays: the density grid's cells that
         can be non-zero (ReLU fields; softplus is never 0) and the alpha mask's occupied voxels (``occupied_density``
         is 0 outside them), each dilated by how far a group's slots (and their nearest mask voxels) lie from its
-        centre along these rays. Each bound is conservative, so both together are."""
+        centre along these rays. Each bound is conservative, so both together are. No rays: no bounds."""
+        if directions.shape[0] == 0:
+            return []
         bounds = [("cells", self.grid, self.grid_a, self.grid_b, 1)] if self.activation == "relu" else []
         if self.mask is not None:
             same_nodes = self.mask.shape == self.grid.shape and bool(
