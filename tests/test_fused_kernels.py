@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
-from frugalnerf_ns.field.tensorial import coords_for_stride
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from frugalnerf_ns.field import fused_kernels
 from frugalnerf_ns.model.rendering import FAINT_BUDGET, render_scale_inference
@@ -161,9 +160,7 @@ def test_the_fused_feature_read_gives_the_planes_colours(scale, stretched, monke
         coords = field.normalize(positions)
         products = torch.cat(field.appearance_grid.plane_line_products(coords, field.stride(scale), stretched), dim=-1)
         key = ("channels last", field.stride(scale))
-        mapped = coords if stretched else torch.stack(
-            [coords_for_stride(coords[:, i], field.appearance_grid.resolution_tuple[i], field.stride(scale))
-             for i in range(3)], dim=-1)
+        mapped = field.appearance_grid.view_coords(coords, field.stride(scale), stretched)
         fused = fused_kernels.vm_features(wp, field._channels_last[key][1], mapped)
         assert torch.allclose(fused, products, atol=1e-5) and float(products.std()) > 0.5
         # A parameter changed after the first read: the channels-last copies follow it.

@@ -441,7 +441,7 @@ def density_march(
             t_near=wp.from_torch(t_near), t_far=wp.from_torch(t_far), outputs_at=wp.from_torch(outputs_at),
             sums=wp.from_torch(sums),
         )
-        wp.launch(kernel, dim=rays, inputs=_ordered(inputs, shared), device="cpu")
+        wp.launch(kernel, dim=rays, inputs=_ordered(kernel, inputs, shared), device="cpu")
     if total == 0:
         empty = torch.zeros(0, dtype=torch.float32)
         return MarchResult(sums[:, 0], sums[:, 1], torch.zeros(0, dtype=torch.int64), empty, empty)
@@ -454,19 +454,10 @@ def density_march(
     return MarchResult(sums[:, 0], sums[:, 1], ray_of_row, shade_t[rows], shade_w[rows])
 
 
-_ARGUMENT_ORDER = (
-    "origins", "directions", "t_near", "t_far", "outputs_at", "num_groups", "num_bounds",
-    "occupancy0", "entries0", "a0", "b0", "to_index0", "rounding0",
-    "occupancy1", "entries1", "a1", "b1", "to_index1", "rounding1", "grid", "grid_a", "grid_b", "relu",
-    "box_min", "box_max", "mask", "has_mask", "mask_min", "mask_max", "mask_res", "mask_strides", "step",
-    "num_samples", "group", "per_block", "delta", "weight_threshold", "faint_weight", "faint_budget",
-    "stop_optical", "max_optical", "sums", "shade_t", "shade_w",
-)
-
-
-def _ordered(inputs: dict, shared: dict) -> list:
+def _ordered(kernel, inputs: dict, shared: dict) -> list:
+    """The kernel's arguments in its signature's order, from the per-launch and shared ones by name."""
     every = {**shared, **inputs}
-    return [every[name] for name in _ARGUMENT_ORDER]
+    return [every[arg.label] for arg in kernel.adj.args]
 
 
 def outer_composite(fused: WarpKernels, table: Tensor, dims, centre: Tensor, half: Tensor, origins: Tensor, directions: Tensor,

@@ -20,7 +20,6 @@ from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
 from frugalnerf_ns.field.tensorial import (
     OptimizerState,
     TensorVMGrid,
-    coords_for_stride,
     read_node_sum,
     strided_length,
     trilinear_rows,
@@ -318,10 +317,8 @@ class FrugalNeRFField(nn.Module):
         if baked is None and kernels is not None and positions.device.type == "cpu":
             from frugalnerf_ns.field import fused_kernels
 
-            stride, res = self.stride(scale), self.appearance_grid.resolution_tuple
-            coords = self.normalize(positions)
-            if not self.stretched:
-                coords = torch.stack([coords_for_stride(coords[:, i], res[i], stride) for i in range(3)], dim=-1)
+            stride = self.stride(scale)
+            coords = self.appearance_grid.view_coords(self.normalize(positions), stride, self.stretched)
             key = ("channels last", stride)
             current = self._versions([*self.appearance_grid.planes, *self.appearance_grid.lines])
             if self._channels_last.get(key, (None,))[0] != current:

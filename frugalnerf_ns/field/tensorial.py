@@ -287,6 +287,13 @@ class TensorVMGrid(nn.Module):
         lines = [line[:, :, ::stride, :] for line in self.lines]
         return planes, lines
 
+    def view_coords(self, coords: Float[Tensor, "n 3"], stride: int = 1, stretched: bool = False) -> Float[Tensor, "n 3"]:
+        """Where the strided views of ``plane_line_products`` read full-grid coordinates ``coords``."""
+        if stretched:
+            return coords
+        res = self.resolution_tuple
+        return torch.stack([coords_for_stride(coords[:, i], res[i], stride) for i in range(3)], dim=-1)
+
     def plane_line_products(
         self, coords: Float[Tensor, "n 3"], stride: int = 1, stretched: bool = False
     ) -> List[Float[Tensor, "n comps"]]:
@@ -296,11 +303,7 @@ class TensorVMGrid(nn.Module):
         with its first and last entries on the box's faces (the coordinates as they are: what reading the view
         as a tensor of its own over the box gives, as the reference code reads its downsampled tensors)."""
         planes, lines = self.scale_views(stride)
-        res = self.resolution_tuple
-        if stretched:
-            mapped = coords
-        else:
-            mapped = torch.stack([coords_for_stride(coords[:, i], res[i], stride) for i in range(3)], dim=-1)
+        mapped = self.view_coords(coords, stride, stretched)
         products = []
         for plane, line, (a, b), line_axis in zip(planes, lines, PLANE_AXES, LINE_AXES):
             plane_feat = sample_plane(plane, mapped[:, a], mapped[:, b])
