@@ -28,7 +28,7 @@ test-slow: setup
 benchmark: setup
 	$(VENV)/bin/frugalnerf-bench vs-tensorf
 
-# The quality gate (configs/gate.yaml): the CPU presets on fern, flower, horns and DTU scan65 against
-# configs/gate_baseline.yaml; exits non-zero on a regression (~75 min on 2 cores).
+# The quality gate (configs/gate.yaml): the CPU presets on fern, flower, horns, DTU scan65, the juice box and the
+# bird against configs/gate_baseline.yaml; exits non-zero on a regression (10 runs, ~2 h on 2 cores; docs/development.md).
 gate: setup
 	$(VENV)/bin/frugalnerf-gate

@@ -2,7 +2,7 @@
 
 Every training step returns one ray bundle and a ``TrainBatch`` (``batch.py``) naming its three ray groups:
 training rays sampled as k x k pixel patches, novel-view rays in 2x2 patches from spiral poses around the
-training cameras (paper Sec. 3.4, generated once), and rays through sparse points triangulated from the
+training cameras (paper Sec. 3.5, generated once), and rays through sparse points triangulated from the
 training views (L_sd, ``sparse_points.py``), with per ray the training view it is warped into. The training
 images and cameras the warps compare with are set up here once and handed to the model by the pipeline.
 Batches are deterministic under ``seed`` (patches: ``patches.py``). What is derived once from the training

@@ -1,4 +1,4 @@
-"""The novel cameras training samples rays from (paper Sec. 3.4 "novel pose sampling"), and nerfstudio
+"""The novel cameras training samples rays from (paper Sec. 3.5 "novel pose sampling"), and nerfstudio
 ``Cameras`` at any poses (the novel-view rays and the videos share them). The poses themselves are pure
 geometry (``novel_views.py``, ``video_path.py``); this module picks the path and gives the poses intrinsics."""
 

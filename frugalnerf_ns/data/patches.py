@@ -1,5 +1,5 @@
 """The k x k pixel patches every training step samples its rays in: training views' patches for the
-geometric adaptation's reprojection error (paper Sec. 3.3), 2x2 patches on novel poses for depth smoothness."""
+geometric adaptation's reprojection error (paper Sec. 3.4), 2x2 patches on novel poses for depth smoothness."""
 
 from __future__ import annotations
 

@@ -68,7 +68,7 @@ FEATURE_ATTEMPTS = (FeatureSettings(), FeatureSettings(peak_threshold=0.002, max
 lower contrast and a looser ratio test (every pair is still verified by its essential matrix). The juice box's
 views 45 13 29 46 (73 degrees, one photo looking down at the box): 16 verified matches for the photo with the
 fewest at COLMAP's settings, 63 at the second. Larger images (1280 px: 13) and affine-shape or
-domain-size-pooled SIFT (12-17) did not help as much at 640 px (docs/captures.md)."""
+domain-size-pooled SIFT (12-17) did not help as much at 640 px (docs/notes/captures.md)."""
 
 
 @dataclass(frozen=True)
@@ -305,7 +305,7 @@ def bundle_adjust(
     """Poses, points and (``refine_focal``) the focal length refined together (pycolmap's bundle adjustment,
     Cauchy loss; the gauge fixed by two cameras). The focal length is refined together with one radial
     distortion term: phone lenses have some, and without it the focal length absorbs it (on LLFF photos,
-    -18 % to +8 % off; with it, -14 % to +2 %, docs/captures.md). Only the focal length is kept: the renderer's
+    -18 % to +8 % off; with it, -14 % to +2 %, docs/notes/captures.md). Only the focal length is kept: the renderer's
     cameras are pinholes, and the adjustments after this one fit the poses and points to them."""
     pycolmap = _pycolmap()
     reconstruction = pycolmap.Reconstruction()

@@ -1,4 +1,4 @@
-"""Sparse depth from the few training views (paper Sec. 3.5, L_sd after DS-NeRF).
+"""Sparse depth from the few training views (paper Sec. 3.6, L_sd after DS-NeRF).
 
 The paper runs COLMAP on the training views only (all views would leak the test views' geometry). We do the
 same inside the pipeline: SIFT features per training image with pycolmap (no COLMAP binary), COLMAP's
@@ -76,7 +76,7 @@ class TriangulationOptions:
     SIFT's points: every textured pixel whose match is sharp and passes the left-right check, not only keypoints
     (fern 2-view: 8x the points of SIFT on 2x images, as close to the full capture's COLMAP points;
     scripts/diagnostics/dense_stereo_points.py; trained with, fern and flower 2-view moved by ~0.1 dB either way,
-    docs/benchmarks.md). The depth range is the scene's near/far bounds, else SIFT's points' (without either, no
+    docs/notes/benchmarks.md). The depth range is the scene's near/far bounds, else SIFT's points' (without either, no
     stereo)."""
 
     def key(self) -> Dict[str, float]:

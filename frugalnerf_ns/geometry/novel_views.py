@@ -1,4 +1,4 @@
-"""Where novel-view rays come from and which training view each view is compared with (paper Sec. 3.4).
+"""Where novel-view rays come from and which training view each view is compared with (paper Sec. 3.5).
 
 Pure torch functions on nerfstudio camera-to-world matrices ([n, 3, 4], OpenGL axes: the camera looks down
 -z, y up).

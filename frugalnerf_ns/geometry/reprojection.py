@@ -1,4 +1,4 @@
-"""The geometry of cross-scale geometric adaptation as pure torch functions (paper Sec. 3.3-3.4, Eq. 2-4 and
+"""The geometry of cross-scale geometric adaptation as pure torch functions (paper Sec. 3.4-3.5, Eq. 2-4 and
 6-8, supp. Sec. B): the warp, the reprojection error and the pseudo depth; the loss (Eq. 5, 9) is in losses.py.
 
 A pixel of one view is lifted to 3D with its own ray and a rendered depth, projected into its nearest

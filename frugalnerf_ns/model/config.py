@@ -103,8 +103,9 @@ class FrugalNeRFSettings(ModelConfig):
     """Outside training, without gradients, march in blocks and stop each ray once its transmittance is below
     1e-4 (model/rendering.py, ``render_scale_inference``); False renders with the training marcher."""
     kernels: Literal["auto", "warp", "torch"] = "auto"
-    """Fused kernels (NVIDIA Warp, compiled at first use) for the inference marcher's density pass on the CPU;
-    torch: the reference path. auto: Warp where it imports and compiles, else torch with one line."""
+    """Fused kernels (NVIDIA Warp, compiled at first use) for rendering without gradients on the CPU: the density
+    march, the appearance reads of a grid too large to bake and the space beyond the box. torch: the reference
+    path. auto: Warp where it imports and compiles, else torch with one line. Training is unaffected."""
     mlp_hidden_dim: int = 128
     """Width of the colour MLP."""
     feature_pe: int = 0
@@ -118,8 +119,8 @@ class FrugalNeRFSettings(ModelConfig):
     eval_all_scales: bool = False
     """Outside training and the viewer (ns-eval, evaluation during training, ns-render), render every scale and
     score the lower ones too (per-scale PSNR, depth and accumulation images). Off: only the full scale, the one
-    the metrics and videos use (1.3x faster on fern, docs/video.md). For a trained run, set ``eval_all_scales: true`` in its
-    config.yml."""
+    the metrics and videos use (1.3x faster on fern, docs/notes/video.md). For a trained run, set
+    ``eval_all_scales: true`` in its config.yml."""
     background: Background = "random_white"
     """Training background: white or black at random per batch (reference code), or fixed."""
     far_background: bool = True
@@ -159,11 +160,11 @@ class FrugalNeRFSettings(ModelConfig):
     geo_weight: float = 0.01
     """lambda_geo of the cross-scale geometric adaptation loss (Eq. 10-11); 0 turns it off."""
     geo_novel_weight: Optional[float] = None
-    """lambda_geo of the novel-view rays' term (Eq. 11's second summand) where it differs from the training
+    """lambda_geo of the novel-view rays' term (Eq. 10's second summand) where it differs from the training
     patches' (geo_weight); None: geo_weight for both, as the paper. Not a paper setting: the paper credits the novel
     rays' term with suppressing floaters where no training view looks (Sec. 3.5, "Novel View Regularizations"); at
     the CPU preset the two summands act on different scenes, and frugalnerf-cpu weighs the novel rays' 0.01 against
-    the training patches' 0.1 (docs/benchmarks.md, "The other split")."""
+    the training patches' 0.1 (docs/notes/benchmarks.md, "The other split")."""
     geo_weight_decay: float = 1.0
     """lambda_geo at the last step over lambda_geo at the first, falling geometrically with the step as the
     loss_weight_decay weights do; 1 keeps it constant (the paper and the reference code). Not a paper setting:

@@ -73,7 +73,7 @@ def color_read(
     """The rays of a training bundle whose colour at ``scale`` a term of ``training_losses`` reads (None: all).
 
     Eq. 1 reads the training rays at every scale; Eq. 6 warps the novel rays' full-scale render (detached);
-    the sparse-depth rays and the novel rays' lower scales feed only depth terms (L_sd, Eq. 7's depths, depth
+    the sparse-depth rays and the novel rays' lower scales feed only depth terms (L_sd, the depths of Eq. 6-9, depth
     smoothness), so their colours need not be shaded: skipping them changes no loss and no gradient. The
     occlusion loss with its background prior reads every ray's sample colours.
     """
@@ -289,7 +289,7 @@ def novel_photometric_consistency(
 
 
 def geo_weights(cfg: "FrugalNeRFSettings") -> Tuple[float, float]:
-    """lambda_geo of Eq. 11's two summands (training patches, novel rays): geo_weight for both unless
+    """lambda_geo of Eq. 10's two summands (training patches, novel rays): geo_weight for both unless
     geo_novel_weight sets the novel rays' own."""
     novel = cfg.geo_weight if cfg.geo_novel_weight is None else cfg.geo_novel_weight
     return cfg.geo_weight, novel

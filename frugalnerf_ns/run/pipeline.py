@@ -57,7 +57,8 @@ def scene_summary(datamanager, model) -> str:
         space = (
             "NDC (the data's near/far bounds), although the split is not forward-facing: NDC looks along the "
             "training cameras' mean direction, and views far from it render poorly (without --ndc, LLFF and photos "
-            "without cameras model such a split in a box around the focus with a far background; docs/captures.md)"
+            "without cameras model such a split in a box around the focus with a far background; "
+            "docs/data.md)"
         )
     elif model.ndc is not None:
         space = "NDC (forward-facing, the data's near/far bounds)"

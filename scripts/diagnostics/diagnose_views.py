@@ -1,7 +1,7 @@
 """Look inside a trained run: per-scale colour, depth and accumulation of chosen test and training views,
 scored, with side-by-side pictures (ground truth | ours per scale | depth | accumulation).
 
-  python scripts/diagnostics/diagnose_views.py <run>/config.yml [--test 0 5] [--train 0 1] [--out docs/diagnosis/<name>]
+  python scripts/diagnostics/diagnose_views.py <run>/config.yml [--test 0 5] [--train 0 1] [--out docs/notes/diagnosis/<name>]
 
 Prints one line per view and scale (PSNR over the image and, where the scene has eval masks, over the
 object; mean accumulation inside and outside the mask; depth percentiles) and writes ``views.json`` and one

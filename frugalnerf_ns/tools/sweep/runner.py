@@ -92,7 +92,7 @@ def cpu_model() -> str:
 def machine() -> Dict[str, Any]:
     """Where a run trained. The processor, torch's build and the vector instructions torch dispatches to decide
     the floating-point rounding: the same code and seed train to different numbers on machines that differ in
-    them (juice box 3-view by up to 1.15 dB; docs/quality-gate.md), so the gate compares runs of one machine."""
+    them (juice box 3-view by up to 1.15 dB; docs/notes/quality-gate.md), so the gate compares runs of one machine."""
     info: Dict[str, Any] = {"host": socket.gethostname(), "cpus": os.cpu_count(), "python": platform.python_version(),
                             "cpu": cpu_model()}
     try:
