@@ -89,7 +89,7 @@ def test_novel_views_can_be_turned_off(procedural_scene):
 def keep_points_outside_the_box(monkeypatch):
     """The procedural scene's few SIFT points lie on its backdrop, outside the scene box, which the
     datamanager drops (tested in test_sparse_points); keep them here to test the rays."""
-    monkeypatch.setattr("frugalnerf_ns.data.sparse_points.points_inside_box", lambda sparse, aabb: sparse)
+    monkeypatch.setattr("frugalnerf_ns.data.training_points.points_inside_box", lambda sparse, aabb: sparse)
 
 
 def test_sparse_rays_follow_the_novel_rays_and_pass_through_their_points(procedural_scene, tmp_path, keep_points_outside_the_box):

@@ -196,7 +196,8 @@ def test_the_points_beyond_the_box_place_the_sphere_and_are_kept_only_when_wante
     from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
     from nerfstudio.data.scene_box import SceneBox
 
-    from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, cache_key, save_sparse_depth
+    from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions
+    from frugalnerf_ns.data.training_points import cache_key, save_sparse_depth
     from frugalnerf_ns.data.training_views import training_view_points
 
     c2w = torch.eye(4)[None, :3].repeat(2, 1, 1)

@@ -26,7 +26,7 @@ def model_and_batch(procedural_scene, tmp_path_factory):
     # The procedural scene triangulates only a few points, on its backdrop outside the scene box: let them
     # all count, so the batch has sparse rays.
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr("frugalnerf_ns.data.sparse_points.points_inside_box", lambda sparse, aabb: sparse)
+        patch.setattr("frugalnerf_ns.data.training_points.points_inside_box", lambda sparse, aabb: sparse)
         manager = manager_for(
             procedural_scene, train_num_rays_per_batch=225, num_novel_rays_per_batch=64, patch_size=5,
             min_sparse_points=1, sparse_cache_dir=tmp_path_factory.mktemp("sparse"),

@@ -67,11 +67,13 @@ def test_a_stop_signal_saves_the_steps_done_and_exits_non_zero(procedural_scene,
     code, err, _ = stop(proc, signum)
     assert code == 128 + signum, err[-3000:]
     name = signal.Signals(signum).name
-    said = re.search(rf"stopped by {name} after step (\d+): saved in (\S+); resume with .* --load-dir (\S+)", err)
+    said = re.search(
+        rf"stopped by {name} after step (\d+): saved in (\S+); resume with .* --load-dir (\S+) --max-num-iterations (\d+)", err)
     assert said, err[-3000:]
     assert "Traceback" not in err
     step, folder = int(said.group(1)), Path(said.group(2))
     assert step >= 20 and said.group(3) == str(folder)
+    assert int(said.group(4)) == 5000 - (step + 1)  # the steps the run had left (nerfstudio counts from the loaded step)
     assert saved_steps(tmp_path) == [step]  # the one checkpoint there is the interruption's
     state = read_checkpoint(folder / f"step-{step:09d}.ckpt")
     assert state["step"] == step and state["schedule_steps"] == 5000

@@ -144,3 +144,30 @@ def test_every_room_says_what_it_holds_and_its_floor():
     for room_dir in rooms:
         doc = ast.get_docstring(ast.parse((room_dir / "__init__.py").read_text())) or ""
         assert doc.startswith(f"Floor {FLOOR[room_dir.name]}, "), room_dir.name
+
+
+MAX_MODULE_LINES = 450
+MAX_LINES = {"data/datamanager.py": 300}  # nerfstudio's datamanager is already long; ours only adds the batch
+
+
+def oversized(paths, limits=None, default=MAX_MODULE_LINES):
+    """(module, lines, limit) of every module longer than its limit (physical lines)."""
+    limits = MAX_LINES if limits is None else limits
+    found = []
+    for path in paths:
+        name = path.relative_to(PACKAGE).as_posix()
+        lines = len(path.read_text().splitlines())
+        limit = limits.get(name, default)
+        if lines > limit:
+            found.append((name, lines, limit))
+    return found
+
+
+def test_every_module_fits_on_a_few_screens():
+    assert oversized(modules()) == []
+
+
+def test_an_oversized_module_is_caught():
+    fake = PACKAGE / "data" / "datamanager.py"
+    assert oversized([fake], {"data/datamanager.py": 10}) == [("data/datamanager.py", len(fake.read_text().splitlines()), 10)]
+    assert oversized([fake], {}, default=10**6) == []

@@ -414,3 +414,18 @@ def test_a_render_on_black_recomposited_on_white_equals_the_render_on_white():
     moved = on_background(renders["black"].rgb, acc, torch.zeros(3), torch.ones(3))
     assert torch.allclose(moved, renders["white"].rgb, atol=1e-5)
     assert (renders["black"].rgb - renders["white"].rgb).abs().max() > 0.01
+
+
+def test_eq6_source_of_novel_rays_is_their_detached_render_on_white():
+    """Eq. 6: a novel ray's warp source is its own render, detached, on white; a per-ray far background stays."""
+    from frugalnerf_ns.model.objective import novel_view_source
+
+    torch.manual_seed(2)
+    rgb = torch.rand(16, 3, requires_grad=True)
+    acc = torch.rand(16, 1)
+    black, white = torch.zeros(3), torch.ones(3)
+    source = novel_view_source(rgb, acc, black, white)
+    assert not source.requires_grad  # the error it feeds trains depth only
+    assert torch.allclose(source, rgb + (1.0 - acc))  # the background's share moved from black to white
+    learned = torch.rand(16, 3)  # one far-background colour per ray: the scene's own colour there
+    assert torch.equal(novel_view_source(rgb, acc, learned, white), rgb.detach())

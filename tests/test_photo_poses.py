@@ -17,9 +17,8 @@ from frugalnerf_ns.data.photo_poses import (
     estimate_cameras,
     focal_from_35mm,
     focal_from_field_of_view,
-    opengl_to_world_to_camera,
-    world_to_camera_to_opengl,
 )
+from frugalnerf_ns.data.photo_geometry import opengl_to_world_to_camera, world_to_camera_to_opengl
 from frugalnerf_ns.data.sparse_points import extract_sift
 from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
 from frugalnerf_ns.geometry.reprojection import project_to_camera

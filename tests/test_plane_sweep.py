@@ -9,11 +9,11 @@ import torch
 from frugalnerf_ns.data.sparse_points import (
     SparseDepth,
     TriangulationOptions,
-    cache_key,
     concatenate,
     triangulate_training_views,
     z_depth_range,
 )
+from frugalnerf_ns.data.training_points import cache_key
 from frugalnerf_ns.geometry.plane_sweep import (
     StereoOptions,
     best_plane,

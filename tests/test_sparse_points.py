@@ -18,18 +18,16 @@ from frugalnerf_ns.data.sparse_points import (
     SparseDepth,
     TriangulationOptions,
     build_tracks,
-    cache_key,
     extract_sift,
-    load_sparse_depth,
     match_descriptors,
     match_pairs,
     neighbour_pairs,
     opencv_projection_matrices,
-    save_sparse_depth,
     triangulate_dlt,
     triangulate_tracks,
     triangulate_training_views,
 )
+from frugalnerf_ns.data.training_points import cache_key, load_sparse_depth, save_sparse_depth
 
 FERN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "llff" / "fern"
 
@@ -197,7 +195,7 @@ def test_points_outside_the_scene_box_are_dropped_with_their_observations():
 
 
 def test_the_sparse_points_line_counts_the_points_the_box_left_out():
-    from frugalnerf_ns.data.sparse_points import usable_points
+    from frugalnerf_ns.data.training_points import usable_points
 
     points = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.5, -0.5, 0.9]], dtype=torch.float64)
     sparse = SparseDepth(

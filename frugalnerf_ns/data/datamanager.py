@@ -32,6 +32,7 @@ from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.novel_cameras import cameras_at, novel_view_poses
 from frugalnerf_ns.data.patches import NOVEL_PATCH, sample_patches
 from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions
+from frugalnerf_ns.data.training_points import sparse_point_rays
 from frugalnerf_ns.data.training_views import (
     classify_scene,
     fitted_scene_box,
@@ -225,17 +226,9 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
         return folder / cache_file_name(names, width, height, kind)
 
     def _sparse_rays(self) -> Tuple[RayBundle, Tensor]:
-        """Rays through the pixels where sampled points project, and the depths they should render."""
         assert self.sparse is not None
-        count = self.sparse.view.shape[0]
-        num = min(count, self.config.num_sparse_rays_per_batch)
-        chosen = torch.randperm(count, generator=self.generator)[:num].to(self.device)
-        view = self.sparse.view[chosen]
-        # nerfstudio's coords are (row, column) in the same continuous pixel units as (u, v).
-        coords = self.sparse.pixels[chosen].flip(-1)
-        cameras = self.train_ray_generator.cameras
-        bundle = cameras.generate_rays(camera_indices=view[:, None], coords=coords)
-        return bundle, self.sparse.depth[chosen]
+        return sparse_point_rays(self.sparse, self.config.num_sparse_rays_per_batch, self.generator,
+                                 self.train_ray_generator.cameras, self.device)
 
     def spiral_focus_depth(self) -> float:
         """Depth in front of the average training camera that the spiral looks at (novel rays, videos)."""

@@ -17,7 +17,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from frugalnerf_ns.data.mono_depth import load_or_predict
-from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, all_training_sparse_depth, usable_points
+from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions
+from frugalnerf_ns.data.training_points import all_training_sparse_depth, usable_points
 from frugalnerf_ns.geometry.scene_analysis import (
     CameraLayout,
     SceneType,

@@ -1,5 +1,7 @@
 """Floor 1, the radiance field: the VM-decomposed tensorial grids whose lower scales are strided views of the
 same tensors (``tensorial``), the field that evaluates density and appearance at every scale
-(``radiance_field``) and its colour MLP with the tiny-cuda-nn / torch choice (``color_mlp``). Imports only the
+(``radiance_field``), the density activation and a scale's density baked for rendering (``density``), its colour
+MLP with the tiny-cuda-nn / torch choice (``color_mlp``), the space beyond an object's box (``outer_space``,
+``far_background``) and the fused CPU kernels of the inference renderer (``fused_kernels``). Imports only the
 package root and other floor-1 rooms.
 """

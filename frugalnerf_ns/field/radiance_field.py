@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass, field as dataclass_field
-from typing import Dict, Iterator, List, Literal, NamedTuple, Optional, Sequence, Tuple
+from typing import Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -17,6 +16,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
+from frugalnerf_ns.field.density import BakedDensity, DensityActivation, activate_density
 from frugalnerf_ns.field.tensorial import (
     OptimizerState,
     TensorVMGrid,
@@ -25,7 +25,6 @@ from frugalnerf_ns.field.tensorial import (
     trilinear_rows,
 )
 
-DensityActivation = Literal["relu", "softplus"]
 LowerScaleReading = Literal["aligned", "stretched"]
 
 BAKED_DENSITY_MAX_ENTRIES = 2**26
@@ -43,13 +42,6 @@ frugalnerf-cpu's 256^3 grid is 289x321x193 with the spanning sizes (17.9 M nodes
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
 (the CPU presets' ~4 M nodes x 27; the paper preset's grid reads its planes)."""
-
-
-def activate_density(raw: Tensor, activation: DensityActivation, softplus_shift: float = -10.0) -> Tensor:
-    """ReLU for forward-facing scenes; softplus(x - 10) (TensoRF's shifted softplus) for object scenes."""
-    if activation == "relu":
-        return F.relu(raw)
-    return F.softplus(raw + softplus_shift)
 
 
 def log_linear_voxel_counts(initial: int, final: int, num_upsamples: int) -> List[int]:
@@ -412,145 +404,3 @@ class FrugalNeRFField(nn.Module):
 
     def network_parameters(self) -> List[nn.Parameter]:
         return list(self.appearance_basis.parameters()) + list(self.color_mlp.parameters())
-
-
-class GroupBound(NamedTuple):
-    """One volume of ``BakedDensity.group_bounds``: a group is looked up at index-space point
-    ``(p * a + b + 1) * to_index`` (floor for cells, round for nodes), clamped into ``entries`` (x, y, z)."""
-
-    occupancy: Tensor
-    """Flat bool volume, x fastest."""
-    entries: Tensor
-    a: Tensor
-    b: Tensor
-    to_index: Tensor
-    rounding: bool
-
-
-@dataclass(frozen=True)
-class BakedDensity:
-    """One scale's density as a dense [1, 1, Z, Y, X] tensor (and the alpha mask as a volume, to bound where
-    density can be), with the affine maps from world points to their grid_sample coordinates (``p * a + b``).
-
-    A plane read bilinearly times its line read linearly is a trilinear read of their outer product on the
-    nodes, so one trilinear read of ``TensorVMGrid.node_sum`` gives the planes' density (to float rounding) at
-    a sixth of the reads.
-    """
-
-    grid: Tensor
-    grid_a: Tensor
-    grid_b: Tensor
-    mask: Optional[Tensor]
-    mask_a: Tensor
-    mask_b: Tensor
-    activation: DensityActivation
-    _dilated: Dict[tuple, Tensor] = dataclass_field(default_factory=dict, compare=False, repr=False)
-
-    @staticmethod
-    def build(field: "FrugalNeRFField", grid: Tensor, stride: int) -> "BakedDensity":
-        a, b = field.sampling_map(stride)
-        if field.alpha_mask.numel():
-            mask = field.alpha_mask.permute(2, 1, 0).to(grid.dtype)[None, None].contiguous()
-            box = field.alpha_mask_aabb
-            mask_a = 2.0 / (box[1] - box[0])
-            mask_b = -box[0] * mask_a - 1.0
-        else:
-            mask, mask_a, mask_b = None, a, b
-        return BakedDensity(grid, a, b, mask, mask_a, mask_b, field.density_activation)
-
-    def _dilated_occupancy(self, which: str, radius: Tuple[int, int, int]) -> Tensor:
-        """Flat bool volume, dilated by ``radius`` entries (z, y, x): ``"cells"``, the density grid's cells
-        whose density can be non-zero (a trilinear read is a convex combination of the cell's 8 nodes and the
-        activation is monotone, so a cell whose nodes all activate to 0 reads 0 everywhere; softplus never
-        does); ``"mask"``, the alpha mask's occupied voxels; ``"cells in mask"``, the cells that can be non-zero
-        and have a corner in the mask (for a mask on the grid's own nodes: a point's nearest mask voxel is one
-        of its cell's corners)."""
-        key = (which, radius)
-        if key not in self._dilated:
-            if which in ("cells", "cells in mask"):
-                volume = (F.max_pool3d(activate_density(self.grid, self.activation), kernel_size=2, stride=1) > 0)
-                if which == "cells in mask":  # and a corner's mask voxel (the nearest one to any point of the cell)
-                    volume &= F.max_pool3d(self.mask, kernel_size=2, stride=1) > 0  # type: ignore[arg-type]
-            else:
-                volume = self.mask > 0  # type: ignore[operator]
-            volume = volume.to(self.grid.dtype)
-            for axis, r in enumerate(radius):  # separable: three 1-D passes instead of a (2r+1)^3 box
-                if r > 0:
-                    kernel, padding = [1, 1, 1], [0, 0, 0]
-                    kernel[axis], padding[axis] = 2 * r + 1, r
-                    volume = F.max_pool3d(volume, kernel_size=kernel, stride=1, padding=padding)
-            self._dilated[key] = volume.reshape(-1) > 0
-        return self._dilated[key]
-
-    @staticmethod
-    def _group_hits(volume: Tensor, dims: Tensor, f_origin: Tensor, f_direction: Tensor, t: Tensor, rounding: bool) -> Tensor:
-        """Look a flat volume of ``dims`` (x, y, z) entries up at index-space points f_origin + t f_direction,
-        the entry floor(f) (cells) or round(f) (nodes), clamped into the volume: a point beyond a face clamps
-        onto it, no farther from the in-box slots around it than the point itself."""
-        index = torch.addcmul(f_origin[:, None, :], f_direction[:, None, :], t[..., None])
-        index = index.round() if rounding else index.floor()
-        # int32 (baked volumes hold fewer than 2^26 entries): the same indices at half the memory traffic.
-        index = torch.minimum(index.clamp_min(0), dims - 1).to(torch.int32)
-        flat = (index[..., 2] * int(dims[1]) + index[..., 1]) * int(dims[0]) + index[..., 0]
-        return volume[flat]
-
-    def occupied_groups(
-        self,
-        origins: Float[Tensor, "rays 3"],
-        directions: Float[Tensor, "rays 3"],
-        t_near: Float[Tensor, " rays"],
-        step: float,
-        num_samples: int,
-        group: int = 8,
-    ) -> Bool[Tensor, "rays groups"]:
-        """Per ray and group of ``group`` consecutive slots ``t_near + (i + 0.5) step``: False where every slot
-        of the group has density exactly 0, so a march may skip the group and composite the same pixels. One
-        lookup per group at its centre, in volumes dilated by how far the group's slots (and their nearest
-        mask voxels) lie from it: the density grid's cells that can be non-zero (ReLU fields; softplus is
-        never 0) and the alpha mask's occupied voxels (``occupied_density`` is 0 outside them). Each bound is
-        conservative, so both together are."""
-        groups = -(-num_samples // group)
-        hit = torch.ones(origins.shape[0], groups, dtype=torch.bool, device=origins.device)
-        if origins.shape[0] == 0:
-            return hit
-        centre = torch.arange(groups, device=origins.device, dtype=origins.dtype) * group + 0.5 * group
-        t = t_near[:, None] + centre[None, :] * step
-        for bound in self.group_bounds(directions, step, group):
-            f_origin, f_direction = (origins * bound.a + bound.b + 1.0) * bound.to_index, directions * bound.a * bound.to_index
-            hit &= self._group_hits(bound.occupancy, bound.entries, f_origin, f_direction, t, bound.rounding)
-        return hit
-
-    def group_bounds(self, directions: Float[Tensor, "rays 3"], step: float, group: int) -> List["GroupBound"]:
-        """The volumes ``occupied_groups`` looks each group up in, for these rays: the density grid's cells that
-        can be non-zero (ReLU fields; softplus is never 0) and the alpha mask's occupied voxels (``occupied_density``
-        is 0 outside them), each dilated by how far a group's slots (and their nearest mask voxels) lie from its
-        centre along these rays. Each bound is conservative, so both together are. No rays: no bounds."""
-        if directions.shape[0] == 0:
-            return []
-        bounds = [("cells", self.grid, self.grid_a, self.grid_b, 1)] if self.activation == "relu" else []
-        if self.mask is not None:
-            same_nodes = self.mask.shape == self.grid.shape and bool(
-                torch.equal(self.mask_a, self.grid_a) and torch.equal(self.mask_b, self.grid_b))
-            if bounds and same_nodes:  # both bounds in one volume: one lookup per group, and tighter
-                bounds = [("cells in mask", self.grid, self.grid_a, self.grid_b, 1)]
-            else:
-                bounds.append(("mask", self.mask, self.mask_a, self.mask_b, 0))
-        found = []
-        for which, volume, a, b, cell in bounds:
-            nodes = torch.tensor(volume.shape[2:][::-1], device=directions.device, dtype=directions.dtype)  # x, y, z
-            if bool((nodes < 2).any()):
-                continue  # a one-entry axis: no cells to bound (the lower scales of a tiny grid)
-            to_index = 0.5 * (nodes - 1)  # grid_sample's corner-aligned coordinates in [-1, 1] to entries
-            # How far (in entries) a group's slots lie from its centre, plus the half entry between a point and
-            # its nearest node and one for rounding.
-            reach = (0.5 * group * step) * (directions * a * to_index).abs().amax(dim=0) + (0.0 if cell else 0.5)
-            radius = tuple(int(r) + 1 for r in reach.ceil().tolist()[::-1])
-            occupancy = self._dilated_occupancy(which, radius)  # type: ignore[arg-type]
-            found.append(GroupBound(occupancy, nodes - cell, a, b, to_index, not cell))
-        return found
-
-    def read(self, positions: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
-        """Density at world points from the dense tensor (trilinear, border-clamped; no mask, no box test)."""
-        coords = (positions * self.grid_a + self.grid_b).view(1, 1, 1, -1, 3).to(self.grid.dtype)
-        raw = F.grid_sample(self.grid, coords, mode="bilinear", padding_mode="border", align_corners=True)
-        return activate_density(raw.view(-1), self.activation)

@@ -13,7 +13,7 @@ from typing import Literal, Optional, Tuple
 from nerfstudio.models.base_model import ModelConfig
 
 from frugalnerf_ns.field.color_mlp import MLPImplementation
-from frugalnerf_ns.field.radiance_field import DensityActivation
+from frugalnerf_ns.field.density import DensityActivation
 from frugalnerf_ns.geometry.reprojection import ErrorKind
 
 

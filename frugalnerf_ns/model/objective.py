@@ -62,6 +62,19 @@ def on_background(
     return rgb + (1.0 - accumulation) * (wanted - rendered_on)
 
 
+def novel_view_source(
+    rgb: Float[Tensor, "rays 3"], accumulation: Float[Tensor, "rays 1"], background: Tensor, white: Tensor
+) -> Float[Tensor, "rays 3"]:
+    """Eq. 6's source colour of novel-view rays: they have no photo, so their own full-scale render, detached
+    (the warp's error trains depth, not colour), stands in for it. The training views it is compared with are
+    composited on white, so the render is too: on a step's random background (black half the time) every ray
+    with accumulation < 1 would otherwise count as a large error. A learned far background (one colour per ray,
+    ``background`` of shape [rays, 3]) is the scene's own colour there: nothing to swap."""
+    if background.dim() == 2:
+        return rgb.detach()
+    return on_background(rgb, accumulation, background, white).detach()
+
+
 def scale_color_weights(cfg: "FrugalNeRFSettings", num_scales: int, decay: float) -> List[float]:
     """Eq. 1's per-scale weights: the full scale's, then each lower scale's (decaying with the schedule)."""
     return [cfg.full_scale_color_weight] + [cfg.lower_scale_color_weight * decay] * (num_scales - 1)
@@ -298,24 +311,18 @@ def geo_weights(cfg: "FrugalNeRFSettings") -> Tuple[float, float]:
 def geometric_adaptation(
     cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews]
 ) -> Optional[AdaptationResult]:
-    """Eq. 2-9 on the step's training and novel rays, computed once per step (the metrics and the loss share
-    it); None when lambda_geo is 0 (both summands) or there are no training views to warp into."""
+    """Eq. 2-9 on the step's training and novel rays (Eq. 6's source colour: ``novel_view_source``), computed
+    once per step (the metrics and the loss share it); None when lambda_geo is 0 (both summands) or there are no
+    training views to warp into."""
     if max(geo_weights(cfg)) <= 0 or views is None:
         return None
     if render.adaptation is None:
         warped = batch.warped
         white = torch.ones(3, device=render.background.device)
         target = target_rgb(batch.image.to(white.device), white)
-        # Eq. 6: novel rays have no ground truth; their own (detached) render is warped instead. The views
-        # they are compared with are composited on white, so the render is too: on this step's random
-        # background (black half the time) every ray with accumulation < 1 would count as a large error.
         full = render.scales[0]
-        if render.background.dim() == 2:
-            # A learned far background (one colour per ray) is the scene's own colour there: nothing to swap.
-            novel_rgb = full.rgb[batch.novel]
-        else:
-            novel_rgb = on_background(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
-        source = torch.cat([target, novel_rgb.detach()])
+        novel = novel_view_source(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
+        source = torch.cat([target, novel])
         with record_function("geometric_adaptation"):
             render.adaptation = cross_scale_geometric_adaptation(
                 render.origins[warped],

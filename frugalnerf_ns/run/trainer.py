@@ -282,9 +282,13 @@ class FrugalTrainer(Trainer):
         if step < 0:
             print(f"frugalnerf: {name} before the first step ended: nothing to save", file=sys.stderr)
         else:
+            # nerfstudio counts --max-num-iterations from the loaded step: the same command alone would train the
+            # whole run's steps again after this one, so the line names the steps this run had left.
+            left = self._start_step + self.config.max_num_iterations - (step + 1)
             print(
                 f"frugalnerf: stopped by {name} after step {step}: saved in {self.checkpoint_dir}; resume with the same "
-                f"command and --load-dir {self.checkpoint_dir}", file=sys.stderr,
+                f"command and --load-dir {self.checkpoint_dir} --max-num-iterations {left} (the steps left)",
+                file=sys.stderr,
             )
         raise SystemExit(128 + self.interrupted_by)
 

@@ -12,7 +12,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from frugalnerf_ns.data.input_checks import IMAGE_SUFFIXES, DataError
 from frugalnerf_ns.data.dataparsers.blender import SPLIT_FILES, BlenderDataParserConfig, is_blender_layout
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig
-from frugalnerf_ns.data.dataparsers.dtu import CAMERA_FILES, DTUDataParserConfig
+from frugalnerf_ns.data.dataparsers.dtu import CAMERA_FILES, MONOSDF_SUFFIX, DTUDataParserConfig
 from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
     FewShotColmapDataParserConfig,
@@ -35,7 +35,8 @@ LAYOUTS: List[Tuple[str, str, Callable[[Path], bool], Type[DataParserConfig]]] =
     ("Blender (NeRF-synthetic)", f"{SPLIT_FILES['train']} and {SPLIT_FILES['test']}", is_blender_layout,
      BlenderDataParserConfig),
     ("LLFF", "poses_bounds.npy", lambda d: (d / "poses_bounds.npy").is_file(), LLFFDataParserConfig),
-    ("DTU/IDR", f"{' or '.join(CAMERA_FILES)} with image/", lambda d: (d / "image").is_dir()
+    ("DTU/IDR", f"{' or '.join(CAMERA_FILES)} with image/ (or MonoSDF's *{MONOSDF_SUFFIX})",
+     lambda d: ((d / "image").is_dir() or any(d.glob(f"*{MONOSDF_SUFFIX}")))
      and any((d / f).is_file() for f in CAMERA_FILES), DTUDataParserConfig),
     ("RealEstate-10K", f"{' and '.join(REALESTATE_FILES)} with rgb/", lambda d: (d / "rgb").is_dir()
      and all((d / f).is_file() for f in REALESTATE_FILES), RealEstateDataParserConfig),

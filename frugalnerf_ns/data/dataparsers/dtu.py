@@ -1,16 +1,20 @@
-"""DTU in the IDR/NeuS layout: ``cameras_sphere.npz`` (or ``cameras.npz``), ``image/``, ``mask/``.
+"""DTU in the IDR/NeuS layout: ``cameras_sphere.npz`` (or ``cameras.npz``), ``image/``, ``mask/``; and in
+MonoSDF's (``000000_rgb.png`` ... beside ``cameras.npz``: centre crops of the frames the cameras describe).
 
 ``world_mat_i`` = K [R | t] projects world points to pixels of the FULL-resolution capture, OpenCV axes;
 ``scale_mat_i`` maps the unit sphere around the object into the world. We model the unit-sphere frame
 (P = world_mat @ scale_mat), convert the cameras to nerfstudio's OpenGL axes, and rescale K to the size of
-the images on disk. Test images carry the object mask so metrics ignore the background (RegNeRF protocol).
+the images on disk: a whole frame downscaled by an integer factor, or (MonoSDF) its centre crop to the images'
+aspect, scaled, with the principal point moved by the crop as MonoSDF's loader does. Cameras that fit their images
+neither way stop with one line. Test images carry the object mask so metrics ignore the background (RegNeRF
+protocol).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Type
+from typing import List, NamedTuple, Optional, Type
 
 import numpy as np
 import torch
@@ -31,6 +35,11 @@ from frugalnerf_ns.data.dataparsers.common import (
 from frugalnerf_ns.data.splits import every_nth, load_split_table
 
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
+MONOSDF_SUFFIX = "_rgb.png"
+"""MonoSDF's image names (``000000_rgb.png``), in the scene folder itself."""
+KNOWN_FRAMES = ((1600, 1200),)
+"""Capture frames (width, height) a principal point within 5 % of their centre is taken to describe: DTU's. A
+frame is otherwise estimated from the images (a whole frame) or given (``intrinsics_width``, for a crop)."""
 
 
 @dataclass
@@ -39,7 +48,8 @@ class DTUDataParserConfig(FewShotDataParserConfig):
 
     _target: Type = field(default_factory=lambda: DTU)
     intrinsics_width: Optional[int] = None
-    """Image width the world matrices' intrinsics refer to (DTU: 1600); default: inferred from the principal point."""
+    """Width of the frame the world matrices' intrinsics refer to (DTU: 1600); default: inferred from the principal
+    point (DTU's frame, or an integer multiple of the images' width)."""
     masked_eval: bool = True
     """Evaluate on the object only: test images carry their masks (paper protocol)."""
     scene_radius: float = 1.0
@@ -54,7 +64,7 @@ class DTU(DataParser):
         camera_file = next((data / name for name in CAMERA_FILES if (data / name).is_file()), None)
         if camera_file is None:
             raise DataError(f"{data} has none of {', '.join(CAMERA_FILES)} (DTU/IDR layout)")
-        images = list_images(data / "image")
+        images = scene_images(data)
         try:
             cams = dict(np.load(camera_file))
         except (ValueError, OSError, EOFError) as err:
@@ -73,7 +83,7 @@ class DTU(DataParser):
             K, c2w = decompose_projection(projection)
             intrinsics.append(K)
             c2ws.append(opencv_to_opengl(c2w))
-        factor = width / (self.config.intrinsics_width or infer_intrinsics_width(intrinsics[0], width))
+        fit = fit_to_images(intrinsics[0], width, height, self.config.intrinsics_width, camera_file)
 
         table = load_split_table()["dtu"]
         excluded = set(table["excluded_from_test"])
@@ -92,7 +102,7 @@ class DTU(DataParser):
             metadata["test_subsets"] = {"regnerf25": [n for n, i in enumerate(indices) if i not in regnerf]}
         check_images([images[i] for i in indices])
 
-        K = torch.tensor(np.stack([intrinsics[i] for i in indices]), dtype=torch.float32) * factor
+        K = torch.tensor(np.stack([fit.apply(intrinsics[i]) for i in indices]), dtype=torch.float32)
         cameras = Cameras(
             camera_to_worlds=torch.tensor(np.stack([c2ws[i] for i in indices]), dtype=torch.float32),
             fx=K[:, 0, 0:1],
@@ -104,6 +114,11 @@ class DTU(DataParser):
             camera_type=CameraType.PERSPECTIVE,
         )
         if split in EVAL_SPLITS and self.config.masked_eval:
+            if not (data / "mask").is_dir():
+                raise DataError(
+                    f"mask folder {data / 'mask'} not found: DTU is scored on the object's mask; without masks, "
+                    "`frugal-dtu --masked-eval False` trains and scores on whole images"
+                )
             masks = list_images(data / "mask")
             if len(masks) != len(images):
                 raise DataError(f"{data / 'mask'} has {len(masks)} masks for {len(images)} images")
@@ -118,8 +133,74 @@ class DTU(DataParser):
         )
 
 
+def scene_images(data: Path) -> List[Path]:
+    """``image/`` (IDR/NeuS), else MonoSDF's ``*_rgb.png`` in the scene folder, in filename order."""
+    if not (data / "image").is_dir():
+        monosdf = sorted(p for p in data.glob(f"*{MONOSDF_SUFFIX}") if p.is_file())
+        if monosdf:
+            return monosdf
+    return list_images(data / "image")
+
+
 def infer_intrinsics_width(K: np.ndarray, image_width: int) -> float:
     """The width K refers to: the principal point sits near the centre, so about 2 * cx, snapped to an
     integer multiple of the loaded width (DTU: 1600 for 400-wide images)."""
     ratio = 2.0 * K[0, 2] / image_width
     return image_width * max(1, round(ratio))
+
+
+class ImageFit(NamedTuple):
+    """How a frame's intrinsics become the images': K[0, 2] -= crop_x, K[1, 2] -= crop_y, then K[:2] *= scale."""
+
+    scale: float
+    crop_x: float = 0.0
+    crop_y: float = 0.0
+
+    def apply(self, K: np.ndarray) -> np.ndarray:
+        if not (self.crop_x or self.crop_y):
+            return K * self.scale  # a whole frame: as before crops were read (the same numbers to the bit)
+        K = K.copy()
+        K[0, 2] -= self.crop_x
+        K[1, 2] -= self.crop_y
+        K[:2] *= self.scale
+        return K
+
+
+def fit_to_images(K: np.ndarray, width: int, height: int, frame_width: Optional[int], source: Path) -> ImageFit:
+    """The frame K describes fitted to images of ``width`` x ``height``: a whole frame scaled, or (the images'
+    aspect differs from the frame's by over 1 %) its centre crop to their aspect, scaled (MonoSDF's DTU: the
+    middle 1200x1200 of 1600x1200, at 384x384). The frame is DTU's when the principal point lies within 5 % of
+    its centre, else ``frame_width`` (its height from the principal point's aspect), else, for a whole frame, an
+    integer multiple of the images. A principal point outside the middle third of the images it lands in stops
+    with one line naming ``source`` and the numbers."""
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    known = next((f for f in KNOWN_FRAMES if abs(2 * cx / f[0] - 1) < 0.05 and abs(2 * cy / f[1] - 1) < 0.05), None)
+    if frame_width:
+        frame = (float(frame_width), round(frame_width * cy / cx))
+    elif known:
+        frame = (float(known[0]), float(known[1]))
+    elif abs((cx / cy) / (width / height) - 1) > 0.15:  # a crop: 4:3 to 1:1 is 33 %; off-centre points a few %
+        raise DataError(
+            f"{source}: the cameras' principal point ({cx:.1f}, {cy:.1f}) describes a {2 * cx:.0f}x{2 * cy:.0f} frame, "
+            f"whose aspect the {width}x{height} images do not have and whose crop to them is unknown; "
+            "--pipeline.datamanager.dataparser.intrinsics-width gives the frame's width"
+        )
+    else:
+        frame_w = infer_intrinsics_width(K, width)
+        frame = (float(frame_w), frame_w * height / width)
+    aspect, frame_aspect = width / height, frame[0] / frame[1]
+    if abs(aspect / frame_aspect - 1) <= 0.01:
+        fit = ImageFit(width / frame[0])
+    elif aspect < frame_aspect:  # narrower images: the frame's full height, its middle columns
+        fit = ImageFit(height / frame[1], crop_x=(frame[0] - frame[1] * aspect) / 2)
+    else:  # wider images: the full width, the middle rows
+        fit = ImageFit(width / frame[0], crop_y=(frame[1] - frame[0] / aspect) / 2)
+    u, v = (cx - fit.crop_x) * fit.scale, (cy - fit.crop_y) * fit.scale
+    if not (width / 3 <= u <= 2 * width / 3 and height / 3 <= v <= 2 * height / 3):
+        raise DataError(
+            f"{source}: the cameras do not fit the {width}x{height} images: their principal point lands at "
+            f"({u:.1f}, {v:.1f}), outside the images' middle third (a {frame[0]:.0f}x{frame[1]:.0f} frame"
+            + (f" cropped by {fit.crop_x:.0f}, {fit.crop_y:.0f}" if fit.crop_x or fit.crop_y else "")
+            + f", scaled {fit.scale:.4g}); --pipeline.datamanager.dataparser.intrinsics-width gives the frame's width"
+        )
+    return fit
