@@ -199,20 +199,19 @@ def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):
 
 @contextmanager
 def loss_along_the_schedule(model_and_batch, term):
-    """A function of the step giving one loss term, with the model's loss-weight schedule set at that step (a
-    10-step run); the schedule is set back to step 0 afterwards."""
+    """A function of the step giving one loss term, the batch at that step of a 10-step run's schedule; the
+    batch's step and the model's schedule are set back afterwards."""
     from types import SimpleNamespace
 
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
 
     model, bundle, batch = model_and_batch
     trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=10, steps_per_save=1000), base_dir=".")
     attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)
-    before = [c for c in model.get_training_callbacks(attrs) if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION in c.where_to_run]
+    model.get_training_callbacks(attrs)
 
     def set_step(step):
-        for callback in before:
-            callback.run_callback_at_location(step, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        batch.step = step
 
     def loss_at(step):
         set_step(step)
@@ -223,7 +222,7 @@ def loss_along_the_schedule(model_and_batch, term):
     try:
         yield loss_at
     finally:
-        set_step(0)
+        batch.step, model.schedule_length = None, None
 
 
 def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
@@ -236,7 +235,7 @@ def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
             assert middle == pytest.approx(0.1**0.5 * start, rel=1e-4)
             assert end == pytest.approx(0.1 * start, rel=1e-4)
             # The other decaying weights keep their own ratio (loss_weight_decay), not lambda_geo's.
-            assert model.loss_schedule_factor == pytest.approx(model.config.loss_weight_decay)
+            assert model.schedule(10).loss == pytest.approx(model.config.loss_weight_decay)
             model.config.geo_weight_decay = 1.0
             assert geo_loss_at(10) == pytest.approx(start, rel=1e-4)
     finally:
@@ -258,7 +257,7 @@ def test_sparse_depth_weight_decay_gives_lambda_sd_its_own_schedule(model_and_ba
             model.config.sparse_depth_weight_decay = 0.5
             assert sparse_loss_at(5) == pytest.approx(0.5**0.5 * start, rel=1e-4)
             assert sparse_loss_at(10) == pytest.approx(0.5 * start, rel=1e-4)
-            assert model.loss_schedule_factor == pytest.approx(decay)
+            assert model.schedule(10).loss == pytest.approx(decay)
     finally:
         model.config.sparse_depth_weight_decay = None
 

@@ -23,17 +23,17 @@ def eval_batch(image):
     return EvalBatch(image=image, indices=torch.zeros(image.shape[0], 3, dtype=torch.long))
 
 
-def regularizers(model, outputs):
-    """The grid and per-sample regularisers of a training render, at the model's current schedule factor."""
-    decay = model.loss_schedule_factor
+def regularizers(model, outputs, step=None):
+    """The grid and per-sample regularisers of a training render, at the schedule's factor at ``step``."""
+    decay = model.schedule(step).loss
     return {
         **objective.grid_regularizers(model.config, model.field, decay),
         **objective.sample_regularizers(model.config, model.field, outputs["step"], decay, model.occlusion_active),
     }
 
 
-def scale_weights(model):
-    return objective.scale_color_weights(model.config, model.field.num_scales, model.loss_schedule_factor)
+def scale_weights(model, step=None):
+    return objective.scale_color_weights(model.config, model.field.num_scales, model.schedule(step).loss)
 
 
 def ray_bundle(n=64):
@@ -277,22 +277,20 @@ def test_masked_metrics_ignore_the_background():
 
 
 def test_loss_weight_schedule_decays_colour_tv_smoothness_and_grows_distortion():
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
 
     model = tiny_model(appearance_tv_weight=1.0, density_tv_weight=1.0, loss_weight_decay=0.01)
     trainer = SimpleNamespace(config=SimpleNamespace(max_num_iterations=10, steps_per_save=1000), base_dir=".")
     attrs = TrainingCallbackAttributes(optimizers=None, grad_scaler=None, pipeline=None, trainer=trainer)
-    before = [c for c in model.get_training_callbacks(attrs) if TrainingCallbackLocation.BEFORE_TRAIN_ITERATION in c.where_to_run]
+    model.get_training_callbacks(attrs)  # the run's schedule: 10 steps
     torch.manual_seed(0)
     model.train()
     outputs = model.get_outputs(ray_bundle(32))
-    start = {k: float(v) for k, v in regularizers(model, outputs).items()}
-    assert scale_weights(model) == [1.0, 10.0, 10.0]
-    for callback in before:
-        callback.run_callback_at_location(10, location=TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-    assert model.loss_schedule_factor == pytest.approx(0.01)
-    end = {k: float(v) for k, v in regularizers(model, outputs).items()}
-    assert scale_weights(model) == pytest.approx([1.0, 0.1, 0.1])
+    start = {k: float(v) for k, v in regularizers(model, outputs, step=0).items()}
+    assert scale_weights(model, step=0) == [1.0, 10.0, 10.0]
+    assert model.schedule(10).loss == pytest.approx(0.01) and model.schedule(None).loss == 1.0
+    end = {k: float(v) for k, v in regularizers(model, outputs, step=10).items()}
+    assert scale_weights(model, step=10) == pytest.approx([1.0, 0.1, 0.1])
     assert end["tv_appearance"] == pytest.approx(0.01 * start["tv_appearance"], rel=1e-5)
     assert end["tv_density"] == pytest.approx(0.01 * start["tv_density"], rel=1e-5)
     assert end["distortion"] == pytest.approx(100 * start["distortion"], rel=1e-5)

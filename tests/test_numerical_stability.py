@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
-from frugalnerf_ns.model.geometric_adaptation import pseudo_ground_truth_scale
+from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC, pseudo_ground_truth_scale
 from frugalnerf_ns.geometry.novel_views import nearest_other_view, spiral_poses
 from frugalnerf_ns.geometry.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
 from frugalnerf_ns.geometry.reprojection import project_to_camera, unproject_along_rays, warp_to_views
@@ -296,7 +296,7 @@ def test_one_training_view_trains_without_geometric_adaptation_and_says_why(proc
     loss = sum(loss_dict.values())
     assert all(bool(torch.isfinite(v)) for v in loss_dict.values())
     # Training rays are all left out of L_geo; novel rays still warp into the one view.
-    chosen = outputs["step"].adaptation.chosen_scale
+    chosen = metrics[ADAPTATION_METRIC].chosen_scale
     assert (chosen[batch.train] == -1).all()
     assert float(metrics["geo_left_out_fraction"]) >= batch.num_train / len(chosen)
     loss.backward()

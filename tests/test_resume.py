@@ -19,11 +19,11 @@ def snapshot(trainer):
     model = trainer.pipeline.model
     return {
         "step": trainer.step,
-        "loss_weight_factor": model.loss_schedule_factor,
+        "loss_weight_factor": model.schedule(trainer.step).loss,
         "lr": {name: opt.param_groups[0]["lr"] for name, opt in trainer.optimizers.optimizers.items()},
         "resolution": model.field.density_grid.resolution.tolist(),
         "box": model.field.aabb.flatten().tolist(),
-        "lower_scale_weight": objective.scale_color_weights(model.config, model.field.num_scales, model.loss_schedule_factor)[1],
+        "lower_scale_weight": objective.scale_color_weights(model.config, model.field.num_scales, model.schedule(trainer.step).loss)[1],
     }
 
 

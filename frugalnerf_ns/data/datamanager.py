@@ -261,6 +261,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
             patch_size=k,
             nearest_view=self.train_nearest_view[view],
             mono_depth=None if self.mono_depth is None else self.mono_depth[view, rows, cols],
+            step=step,
         )
         if self.novel_cameras is not None and self.novel_nearest_view is not None:
             num_novel = max(1, self.config.num_novel_rays_per_batch // NOVEL_PATCH**2)
@@ -285,7 +286,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
     def next_eval(self, step: int) -> Tuple[RayBundle, EvalBatch]:
         """nerfstudio's eval batch (random pixels of a test image), typed."""
         bundle, batch = super().next_eval(step)
-        return bundle, EvalBatch(image=batch["image"], indices=batch["indices"], eval_mask=batch.get("eval_mask"))
+        return bundle, EvalBatch(image=batch["image"], indices=batch["indices"], eval_mask=batch.get("eval_mask"), step=step)
 
     def _train_rays_per_batch(self) -> int:
         sampler = getattr(self, "train_pixel_sampler", None)

@@ -54,6 +54,8 @@ class TrainBatch:
     """Metric depth each sparse-point ray should render (None: no sparse-depth rays this step)."""
     mono_depth: Optional[Float[Tensor, " train_rays"]] = None
     """Monocular depth prediction at each training ray (None: no depth prior)."""
+    step: Optional[int] = None
+    """The training step this batch is for: the loss weights' decay is read at it (None: no schedule)."""
 
     @property
     def num_train(self) -> int:
@@ -87,6 +89,8 @@ class EvalBatch:
     """(image, row, column) of each pixel."""
     eval_mask: Optional[Tensor] = None
     """Object mask at each pixel (DTU protocol), where the dataparser lists masks."""
+    step: Optional[int] = None
+    """The step of the evaluation: its losses weigh their terms as training's do at that step."""
 
 
 def concatenate_ray_bundles(first: RayBundle, second: RayBundle) -> RayBundle:

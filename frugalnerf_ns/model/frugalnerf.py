@@ -33,6 +33,7 @@ from frugalnerf_ns.field.far_background import FarBackground
 from frugalnerf_ns.field.outer_space import OuterRender, OuterSpace
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
+    ADAPTATION_METRIC,
     ScaleFractionHistory,
     pseudo_ground_truth_scale,
     scale_choice_colors,
@@ -47,7 +48,7 @@ from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import StepRender, render_scale, render_scale_inference, scale_suffix
 from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
-from frugalnerf_ns.model.training_schedule import training_callbacks
+from frugalnerf_ns.model.training_schedule import ScheduleFactors, schedule_factors, schedule_length, training_callbacks
 
 
 @dataclass
@@ -122,18 +123,14 @@ class FrugalNeRFModel(Model):
         self._register_load_state_dict_pre_hook(self._keep_a_checkpoint_without_the_outer_space)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
-        # The geometric adaptation's scale fractions of every training step (recorded by get_metrics_dict),
-        # at the step under way: set before each step by the training schedule, as splatfacto keeps its own.
+        # The geometric adaptation's scale fractions of every training step (recorded by get_metrics_dict at the
+        # batch's step).
         self.scale_history = ScaleFractionHistory()
-        self.step = 0
         # Progress lines of a video render (frames, fps, ETA), set by the ns-render hook in video.py.
         self.frame_progress = None
-        # Factor of the decaying loss weights (losses.loss_weight_schedule), set before every training step.
-        self.loss_schedule_factor = 1.0
-        # Factor on lambda_geo (its own decay, geo_weight_decay), set with it.
-        self.geo_schedule_factor = 1.0
-        # Factor on lambda_sd (sparse_depth_weight_decay, or the regularisers' decay), set with it.
-        self.sparse_schedule_factor = 1.0
+        # Steps of the run's schedule (the trainer's, known when the training callbacks are made; None without a
+        # trainer): the loss weights decay along it, computed from each batch's step (``schedule``).
+        self.schedule_length: Optional[int] = None
         # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
         # scale map outside it (set_reference_views).
         self.reference_views: Optional[ReferenceViews] = None
@@ -234,7 +231,12 @@ class FrugalNeRFModel(Model):
                 "fields": self.field.network_parameters() + outer_nets}
 
     def get_training_callbacks(self, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        self.schedule_length = schedule_length(training_callback_attributes)
         return training_callbacks(self, training_callback_attributes)
+
+    def schedule(self, step: Optional[int]) -> ScheduleFactors:
+        """The decaying loss weights' factors at ``step`` of this run's schedule (all 1 without one)."""
+        return schedule_factors(self.config, step, self.schedule_length)
 
     # ---- rendering --------------------------------------------------------------------------------------
     def _background(self, device: torch.device) -> Float[Tensor, "3"]:
@@ -356,8 +358,11 @@ class FrugalNeRFModel(Model):
             adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views)
             if adaptation is not None:
                 stats = scale_statistics(adaptation.chosen_scale, self.field.num_scales)
-                self.scale_history.record(self.step, stats)
+                self.scale_history.record(0 if batch.step is None else batch.step, stats)
                 metrics.update({name: torch.tensor(value) for name, value in stats.items()})
+                # Handed to get_loss_dict with the metrics, as nerfacto hands its terms (computed once a step);
+                # FrugalPipeline takes it out before the metrics are logged.
+                metrics[ADAPTATION_METRIC] = adaptation  # type: ignore[assignment]
             return metrics
         target = objective.target_rgb(_check_batch(batch).image.to(self.device), self._eval_background())
         for scale in range(self.field.num_scales):
@@ -366,11 +371,16 @@ class FrugalNeRFModel(Model):
         return metrics
 
     def get_loss_dict(self, outputs, batch: Union[TrainBatch, EvalBatch], metrics_dict=None) -> Dict[str, Tensor]:
-        decay = self.loss_schedule_factor
+        factors = self.schedule(batch.step if isinstance(batch, TrainBatch) else _check_batch(batch).step)
+        decay = factors.loss
         if isinstance(batch, TrainBatch):
+            step: StepRender = outputs["step"]
+            adaptation = (metrics_dict or {}).get(ADAPTATION_METRIC)
+            if adaptation is None:  # called without this step's metrics
+                adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views)
             terms = objective.training_losses(
-                self.config, self.field, outputs["step"], batch, self.reference_views, decay, self.occlusion_active,
-                geo_factor=self.geo_schedule_factor, sparse_factor=self.sparse_schedule_factor,
+                self.config, self.field, step, batch, self.reference_views, decay, self.occlusion_active,
+                geo_factor=factors.geo, sparse_factor=factors.sparse, adaptation=adaptation,
             )
             if self.outer_space is not None and self.outer_space.is_active:
                 terms.update(objective.outer_space_regularizers(self.config, self.outer_space, decay))

@@ -27,6 +27,10 @@ from frugalnerf_ns.geometry.reprojection import (
     warp_to_views,
 )
 
+ADAPTATION_METRIC = "geometric_adaptation"
+"""Key of the step's ``AdaptationResult`` in the model's training metrics: computed once with the metrics, read by
+the losses, taken out before the metrics are logged (it is not a number)."""
+
 
 class AdaptationResult(NamedTuple):
     loss_train: Float[Tensor, ""]

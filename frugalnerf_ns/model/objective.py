@@ -136,10 +136,12 @@ def training_losses(
     occlusion_active: bool,
     geo_factor: float = 1.0,
     sparse_factor: Optional[float] = None,
+    adaptation: Optional[AdaptationResult] = None,
 ) -> Dict[str, Tensor]:
     """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
     lambda_geo (its schedule, geo_weight_decay), ``sparse_factor`` lambda_sd (None: ``decay``, as the other
-    regularisers)."""
+    regularisers); ``adaptation``: this step's ``geometric_adaptation`` where the metrics computed it (else it
+    is computed here)."""
     device = render.background.device
     target = target_rgb(batch.image.to(device), train_rows(render.background, batch))
     predictions = [scale.rgb[batch.train] for scale in render.scales]
@@ -147,7 +149,8 @@ def training_losses(
     with record_function("regularizers"):
         terms.update(grid_regularizers(cfg, field_, decay))
         terms.update(sample_regularizers(cfg, field_, render, decay, occlusion_active))
-    adaptation = geometric_adaptation(cfg, render, batch, views)
+    if adaptation is None:
+        adaptation = geometric_adaptation(cfg, render, batch, views)
     if adaptation is not None:  # Eq. 10: training patches and novel rays
         train_weight, novel_weight = geo_weights(cfg)
         if train_weight == novel_weight:  # one weight (the paper): the same float operations as before the split
@@ -311,35 +314,33 @@ def geo_weights(cfg: "FrugalNeRFSettings") -> Tuple[float, float]:
 def geometric_adaptation(
     cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews]
 ) -> Optional[AdaptationResult]:
-    """Eq. 2-9 on the step's training and novel rays (Eq. 6's source colour: ``novel_view_source``), computed
-    once per step (the metrics and the loss share it); None when lambda_geo is 0 (both summands) or there are no
-    training views to warp into."""
+    """Eq. 2-9 on the step's training and novel rays (Eq. 6's source colour: ``novel_view_source``); the model
+    computes it once a step, with the metrics, and hands it to the losses. None when lambda_geo is 0 (both
+    summands) or there are no training views to warp into."""
     if max(geo_weights(cfg)) <= 0 or views is None:
         return None
-    if render.adaptation is None:
-        warped = batch.warped
-        white = torch.ones(3, device=render.background.device)
-        target = target_rgb(batch.image.to(white.device), white)
-        full = render.scales[0]
-        novel = novel_view_source(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
-        source = torch.cat([target, novel])
-        with record_function("geometric_adaptation"):
-            render.adaptation = cross_scale_geometric_adaptation(
-                render.origins[warped],
-                render.directions[warped],
-                torch.stack([depth[warped] for depth in render.metric_depths]),
-                torch.stack([scale.depth[warped, 0] for scale in render.scales]),
-                source,
-                batch.nearest_view,
-                batch.num_train,
-                batch.patch_size,
-                views.images,
-                views.camera_to_worlds,
-                views.intrinsics,
-                cfg.reprojection_threshold,
-                cfg.reprojection_error,
-            )
-    return render.adaptation
+    warped = batch.warped
+    white = torch.ones(3, device=render.background.device)
+    target = target_rgb(batch.image.to(white.device), white)
+    full = render.scales[0]
+    novel = novel_view_source(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
+    source = torch.cat([target, novel])
+    with record_function("geometric_adaptation"):
+        return cross_scale_geometric_adaptation(
+            render.origins[warped],
+            render.directions[warped],
+            torch.stack([depth[warped] for depth in render.metric_depths]),
+            torch.stack([scale.depth[warped, 0] for scale in render.scales]),
+            source,
+            batch.nearest_view,
+            batch.num_train,
+            batch.patch_size,
+            views.images,
+            views.camera_to_worlds,
+            views.intrinsics,
+            cfg.reprojection_threshold,
+            cfg.reprojection_error,
+        )
 
 
 def _add(terms: Dict[str, Tensor], name: str, value: Tensor) -> None:

@@ -10,7 +10,7 @@ the pixel values. ``render_scale`` is its test oracle (tests/test_inference_rend
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import math
 from typing import List, NamedTuple, Optional
 
@@ -20,7 +20,6 @@ from torch import Tensor
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.field import fused_kernels
-from frugalnerf_ns.model.geometric_adaptation import AdaptationResult
 from frugalnerf_ns.geometry.raymarch import (
     MAX_OPTICAL_DEPTH,
     RaySegments,
@@ -300,5 +299,3 @@ class StepRender:
     behind the field's depth (``depth_through_box``)."""
     outer_distortion: Optional[Tensor] = None
     """Mean distortion of the samples outside the box (``OuterRender.distortion``; None: no outer space)."""
-    adaptation: Optional[AdaptationResult] = field(default=None)
-    """Cross-scale geometric adaptation of this step, computed once (metrics and losses share it)."""

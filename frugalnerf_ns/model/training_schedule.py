@@ -6,7 +6,7 @@ grid optimiser that each resize recreates. The steps are fractions of the run's 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional, Protocol, Tuple
+from typing import List, NamedTuple, Optional, Protocol, Tuple
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -27,19 +27,41 @@ class ScheduledModel(Protocol):
     field: FrugalNeRFField
     upsample_voxels: List[int]
     scale_history: ScaleFractionHistory
-    step: int
-    loss_schedule_factor: float
-    geo_schedule_factor: float
-    sparse_schedule_factor: float
 
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]: ...
 
 
+class ScheduleFactors(NamedTuple):
+    """The decaying loss weights' factors at one step (``losses.loss_weight_schedule``)."""
+
+    loss: float = 1.0
+    """Of the lower scales' colour, TV, occlusion, depth smoothness and monocular depth (loss_weight_decay)."""
+    geo: float = 1.0
+    """Of lambda_geo (geo_weight_decay)."""
+    sparse: float = 1.0
+    """Of lambda_sd (sparse_depth_weight_decay, else loss_weight_decay)."""
+
+
+def schedule_factors(config: FrugalNeRFSettings, step: Optional[int], length: Optional[int]) -> ScheduleFactors:
+    """The factors at ``step`` of a run whose schedule is ``length`` steps, from the absolute step (a resumed run
+    continues the same curve); all 1 where there is no schedule (no trainer) or no step."""
+    if length is None or step is None:
+        return ScheduleFactors()
+    sparse_decay = config.sparse_depth_weight_decay
+    if sparse_decay is None:
+        sparse_decay = config.loss_weight_decay
+    return ScheduleFactors(
+        losses.loss_weight_schedule(step, length, config.loss_weight_decay),
+        losses.loss_weight_schedule(step, length, config.geo_weight_decay),
+        losses.loss_weight_schedule(step, length, sparse_decay),
+    )
+
+
 def training_callbacks(model: ScheduledModel, training_callback_attributes: TrainingCallbackAttributes) -> List[TrainingCallback]:
-    """What happens at given steps of training, in the order nerfstudio runs them: the model learns the step and
-    its loss-weight decay before each step; after it come the grid upsampling, the alpha mask (and the box
-    shrink the first time) and, at checkpoints, the plot of the geometric adaptation's scale fractions (and at
-    the end)."""
+    """What happens at given steps of training, in the order nerfstudio runs them: after a step, the grid
+    upsampling, the alpha mask (and the box shrink the first time) and, at checkpoints, the plot of the geometric
+    adaptation's scale fractions (and at the end). The loss weights' decay is no callback: the losses compute it
+    from their batch's step (``schedule_factors``)."""
     length = schedule_length(training_callback_attributes)
     upsample_steps = steps_at(model.config.upsample_at, length)
     alpha_mask_steps = steps_at(model.config.alpha_mask_at, length)
@@ -63,9 +85,6 @@ def training_callbacks(model: ScheduledModel, training_callback_attributes: Trai
             model.field.upsample(model.grid_resolution(voxels), state)
             _restart_grid_optimizer(training_callback_attributes, state)
 
-    def follow_step(step: int) -> None:
-        model.step = step
-
     def save_scale_fractions(step: int) -> None:
         # Written at every checkpoint too, so an interrupted run still has its plot.
         trainer = training_callback_attributes.trainer
@@ -78,19 +97,7 @@ def training_callbacks(model: ScheduledModel, training_callback_attributes: Trai
             path = model.scale_history.write(Path(trainer.base_dir))
             CONSOLE.print(f"frugalnerf: pseudo-depth scale fractions over training plotted in {path}")
 
-    def schedule_loss_weights(step: int) -> None:
-        # From the absolute step (not accumulated), so a resumed run continues the same curve.
-        if length is not None:
-            model.loss_schedule_factor = losses.loss_weight_schedule(step, length, model.config.loss_weight_decay)
-            model.geo_schedule_factor = losses.loss_weight_schedule(step, length, model.config.geo_weight_decay)
-            sparse_decay = model.config.sparse_depth_weight_decay
-            if sparse_decay is None:
-                sparse_decay = model.config.loss_weight_decay
-            model.sparse_schedule_factor = losses.loss_weight_schedule(step, length, sparse_decay)
-
     return [
-        TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], follow_step),
-        TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], schedule_loss_weights),
         TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], upsample, iters=tuple(sorted(set(upsample_steps)))),
         TrainingCallback(
             [TrainingCallbackLocation.AFTER_TRAIN_ITERATION], update_alpha_mask, iters=tuple(sorted(set(alpha_mask_steps)))

@@ -14,6 +14,7 @@ from typing import Type
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC
 from frugalnerf_ns.model.objective import geo_weights
 from frugalnerf_ns.run.checkpoints import use_intact_checkpoints_in_eval_tools
 from frugalnerf_ns.errors import one_line_errors
@@ -44,6 +45,13 @@ class FrugalPipeline(VanillaPipeline):
             set_views(images, self.datamanager.warp_camera_to_worlds, self.datamanager.warp_intrinsics)
         if self.test_mode == "val" and hasattr(self.datamanager, "scene_layout") and hasattr(self.model, "scene_type"):
             CONSOLE.print(scene_summary(self.datamanager, self.model))
+
+    def get_train_loss_dict(self, step: int):
+        """nerfstudio's; the step's geometric adaptation, handed from the model's metrics to its losses, is not a
+        number to log: it leaves the metrics here."""
+        outputs, loss_dict, metrics_dict = super().get_train_loss_dict(step)
+        metrics_dict.pop(ADAPTATION_METRIC, None)
+        return outputs, loss_dict, metrics_dict
 
 
 def scene_summary(datamanager, model) -> str:
