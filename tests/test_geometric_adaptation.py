@@ -9,6 +9,8 @@ import torch
 from frugalnerf_ns.model.geometric_adaptation import (
     LEFT_OUT_COLOR,
     SCALE_CHOICE_COLORS,
+    AdaptationRays,
+    ReferenceViews,
     ScaleFractionHistory,
     cross_scale_geometric_adaptation,
     pseudo_ground_truth_scale,
@@ -306,7 +308,7 @@ def test_the_novel_rays_photometric_term_reads_the_novel_rows_and_sends_gradient
         assert bool((second != first).all() & (second >= 0).all())
         expected = novel_view_photometric_consistency(
             render.origins[rows], render.directions[rows], render.metric_depths[0][rows], first, second, 4,
-            views.images, views.camera_to_worlds, views.intrinsics, 3, 1.0)
+            views, 3, 1.0)
         assert float(term) == pytest.approx(0.5 * float(expected), rel=1e-5)
         assert torch.isfinite(term) and float(term) > 0
         model.zero_grad()
@@ -344,7 +346,7 @@ def test_the_training_patches_photometric_term_passes_its_ssim_share(model_and_b
             expected = photometric_consistency(
                 render.origins[rows], render.directions[rows], render.metric_depths[0][rows], indices[:, 0].long(),
                 indices[:, [2, 1]].float() + 0.5, batch.nearest_view[rows], batch.patch_size,
-                views.images, views.camera_to_worlds, views.intrinsics, 3, 1.0, share)
+                views, 3, 1.0, share)
             assert float(terms[share]) == pytest.approx(0.5 * float(expected), rel=1e-5)
         assert float(terms[0.0]) > 0 and float(terms[0.85]) != pytest.approx(float(terms[0.0]), rel=1e-3)
         model.zero_grad()
@@ -364,9 +366,8 @@ def test_rays_without_another_view_are_left_out():
     origins = torch.zeros(4, 3)
     directions = torch.tensor([0.0, 0.0, -1.0]).expand(4, 3)
     depths = torch.full((3, 4), 2.0, requires_grad=True)
-    result = cross_scale_geometric_adaptation(
-        origins, directions, depths, depths, torch.rand(4, 3), torch.full((4,), -1), 4, 2, images, c2w, intrinsics, 0.5
-    )
+    rays = AdaptationRays(origins, directions, depths, depths, torch.rand(4, 3), torch.full((4,), -1), 4, 2)
+    result = cross_scale_geometric_adaptation(rays, ReferenceViews(images, c2w, intrinsics), 0.5)
     assert (result.chosen_scale == -1).all()
     assert float(result.loss_train) == 0.0 and float(result.loss_novel) == 0.0
     assert scale_statistics(result.chosen_scale, 3)["geo_left_out_fraction"] == 1.0
@@ -404,13 +405,13 @@ def test_pseudo_gt_scale_map_picks_the_scale_whose_depth_explains_the_nearest_vi
     depths = factors[:, None] * true_depth[None]
     colors = texture(unproject_along_rays(origins, directions, true_depth))
     chosen = pseudo_ground_truth_scale(
-        origins, directions, depths, colors, images, cameras, INTRINSICS.expand(2, 4), threshold=0.5
+        origins, directions, depths, colors, ReferenceViews(images, cameras, INTRINSICS.expand(2, 4)), threshold=0.5
     )
     assert chosen.shape == (len(pixels),)
     assert (chosen == true_scale).float().mean() > 0.9
     # With a threshold below every error, every ray is left out.
     wrong = pseudo_ground_truth_scale(
-        origins, directions, depths * 1.5, colors, images, cameras, INTRINSICS.expand(2, 4), threshold=1e-4
+        origins, directions, depths * 1.5, colors, ReferenceViews(images, cameras, INTRINSICS.expand(2, 4)), threshold=1e-4
     )
     assert (wrong == -1).all()
 

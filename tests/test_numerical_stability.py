@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
-from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC, pseudo_ground_truth_scale
+from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC, ReferenceViews, pseudo_ground_truth_scale
 from frugalnerf_ns.geometry.novel_views import nearest_other_view, spiral_poses
 from frugalnerf_ns.geometry.raymarch import composite_rgb, composite_weights, intersect_aabb, march_steps
 from frugalnerf_ns.geometry.reprojection import project_to_camera, unproject_along_rays, warp_to_views
@@ -198,7 +198,7 @@ def test_pseudo_depth_selection_works_at_every_scene_scale(log_scale):
     colors = warp_to_views(origins, directions, true_depth, torch.zeros(len(origins), dtype=torch.long), images,
                            cameras, INTRINSICS.expand(2, 4)).colors
     depths = torch.stack([true_depth * 1.2, true_depth, true_depth * 0.8]) * s
-    chosen = pseudo_ground_truth_scale(origins * s, directions, depths, colors, images, scaled, INTRINSICS.expand(2, 4), 0.5)
+    chosen = pseudo_ground_truth_scale(origins * s, directions, depths, colors, ReferenceViews(images, scaled, INTRINSICS.expand(2, 4)), 0.5)
     assert (chosen == 1).float().mean() > 0.9
 
 

@@ -7,7 +7,7 @@ import torch
 
 from frugalnerf_ns.geometry.reprojection import downsample_views, project_to_camera, sample_images
 from frugalnerf_ns.model import losses
-from frugalnerf_ns.model.geometric_adaptation import novel_view_photometric_consistency, photometric_consistency
+from frugalnerf_ns.model.geometric_adaptation import ReferenceViews, novel_view_photometric_consistency, photometric_consistency
 from tests.photo_scene import texture
 from tests.plane_scene import FOCAL, HEIGHT, PLANE_Z, WIDTH, camera, intrinsics, render_plane
 
@@ -67,7 +67,7 @@ def loss_at(depth, images, c2w, k, origins, directions, pixels, levels=3, max_er
     rays = len(depth)
     return photometric_consistency(
         origins, directions, depth, torch.zeros(rays, dtype=torch.long), pixels, torch.ones(rays, dtype=torch.long),
-        PATCH, images, c2w, k, levels, max_error,
+        PATCH, ReferenceViews(images, c2w, k), levels, max_error,
     )
 
 
@@ -114,7 +114,7 @@ def test_patches_off_the_other_image_or_badly_matched_are_left_out():
     nearest = torch.ones(rays, dtype=torch.long)
     nearest[PATCH * PATCH:2 * PATCH * PATCH] = -1
     photometric_consistency(origins, directions, depth * 1.01, torch.zeros(rays, dtype=torch.long), pixels, nearest,
-                            PATCH, images, c2w, k, 3, 0.3).backward()
+                            PATCH, ReferenceViews(images, c2w, k), 3, 0.3).backward()
     per_patch = depth.grad.abs().reshape(-1, PATCH * PATCH).sum(-1)
     assert per_patch[0] == 0 and per_patch[1] == 0 and bool((per_patch[2:] > 0).all()), per_patch
     # Every patch over the error bound: nothing is kept and the loss is 0.
@@ -151,7 +151,7 @@ def novel_loss(depth, images, c2w, k, origins, directions, first=None, second=No
     rays = len(depth)
     first = torch.zeros(rays, dtype=torch.long) if first is None else first
     second = torch.ones(rays, dtype=torch.long) if second is None else second
-    return novel_view_photometric_consistency(origins, directions, depth, first, second, 4, images, c2w, k, levels, max_error)
+    return novel_view_photometric_consistency(origins, directions, depth, first, second, 4, ReferenceViews(images, c2w, k), levels, max_error)
 
 
 def test_novel_rays_see_one_colour_in_both_views_at_the_true_depth_and_descend_to_it():
@@ -231,7 +231,7 @@ def test_the_ssim_share_keeps_the_least_loss_at_the_true_depth_under_another_exp
     def loss(depth, share):
         return photometric_consistency(
             origins, directions, depth, torch.zeros(rays, dtype=torch.long), pixels, torch.ones(rays, dtype=torch.long),
-            PATCH, images, c2w, k, 3, 1.0, share,
+            PATCH, ReferenceViews(images, c2w, k), 3, 1.0, share,
         )
 
     assert float(loss(distance * 0.98, 0.0)) < float(loss(distance, 0.0))

@@ -34,6 +34,7 @@ from frugalnerf_ns.field.outer_space import OuterRender, OuterSpace
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
     ADAPTATION_METRIC,
+    ReferenceViews,
     ScaleFractionHistory,
     pseudo_ground_truth_scale,
     scale_choice_colors,
@@ -43,7 +44,6 @@ from frugalnerf_ns.model.image_scoring import ImageScorer
 from frugalnerf_ns.scoring.metrics import capped_psnr
 from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
-from frugalnerf_ns.model.objective import ReferenceViews
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import StepRender, render_scale, render_scale_inference, scale_suffix
@@ -321,7 +321,7 @@ class FrugalNeRFModel(Model):
         elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
             chosen = pseudo_ground_truth_scale(
                 world_origins, world_directions, torch.stack(metric_depths), outputs["rgb"].reshape(-1, 3),
-                *self.reference_views, cfg.reprojection_threshold, cfg.reprojection_error,
+                self.reference_views, cfg.reprojection_threshold, cfg.reprojection_error,
             )
             outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
         return outputs

@@ -32,6 +32,33 @@ ADAPTATION_METRIC = "geometric_adaptation"
 the losses, taken out before the metrics are logged (it is not a number)."""
 
 
+class ReferenceViews(NamedTuple):
+    """The training views warps compare with, held once by the model (composited on white)."""
+
+    images: Float[Tensor, "views height width 3"]
+    camera_to_worlds: Float[Tensor, "views 3 4"]
+    intrinsics: Float[Tensor, "views 4"]
+
+
+class AdaptationRays(NamedTuple):
+    """The rays of one step's cross-scale geometric adaptation: ``num_train`` patch-major training rays (patches
+    of ``patch_size``^2 pixels), then novel-view rays."""
+
+    origins: Float[Tensor, "rays 3"]
+    directions: Float[Tensor, "rays 3"]
+    metric_depths: Float[Tensor, "scales rays"]
+    """Each scale's depth as metric distance along the unit world ray: where the warp places the points."""
+    loss_depths: Float[Tensor, "scales rays"]
+    """Each scale's depth as the model renders it (NDC depth in NDC scenes): what L_geo compares, so lambda_geo
+    means what it does in the paper's TensoRF-based code."""
+    source_colors: Float[Tensor, "rays 3"]
+    """The training pixels' colours, then (Eq. 6) the novel rays' own detached render."""
+    nearest_view: Int[Tensor, " rays"]
+    """The training view each ray is warped into (-1: none)."""
+    num_train: int
+    patch_size: int
+
+
 class AdaptationResult(NamedTuple):
     loss_train: Float[Tensor, ""]
     """Eq. 5: L_geo on training rays."""
@@ -43,28 +70,16 @@ class AdaptationResult(NamedTuple):
 
 
 def cross_scale_geometric_adaptation(
-    origins: Float[Tensor, "rays 3"],
-    directions: Float[Tensor, "rays 3"],
-    metric_depths: Float[Tensor, "scales rays"],
-    loss_depths: Float[Tensor, "scales rays"],
-    source_colors: Float[Tensor, "rays 3"],
-    nearest_view: Int[Tensor, " rays"],
-    num_train_rays: int,
-    patch_size: int,
-    images: Float[Tensor, "views height width 3"],
-    camera_to_worlds: Float[Tensor, "views 3 4"],
-    intrinsics: Float[Tensor, "views 4"],
-    threshold: float,
-    kind: ErrorKind = "rmse",
+    rays: AdaptationRays, views: ReferenceViews, threshold: float, kind: ErrorKind = "rmse"
 ) -> AdaptationResult:
-    """Eq. 2-10 on a batch of ``num_train_rays`` patch-major training rays followed by novel-view rays.
+    """Eq. 2-10 on a batch of ``rays.num_train`` patch-major training rays followed by novel-view rays, each warped
+    at every scale into its nearest one of ``views``.
 
-    ``metric_depths`` place the points for warping (metric distance along the unit world ray);
-    ``loss_depths`` are what L_geo compares (the depth the model renders in: NDC depth in NDC scenes, so
-    lambda_geo means the same as in the paper's TensoRF-based code). ``source_colors`` are the input colours
-    of the training pixels and, for novel rays (Eq. 6), the rendered colour, which must come detached.
-    Training rays share their patch's error (supp. Sec. B); novel rays use single pixels.
+    Training rays share their patch's error (supp. Sec. B); novel rays use single pixels. The novel rays' source
+    colours must come detached (``AdaptationRays.source_colors``).
     """
+    origins, directions, metric_depths, loss_depths, source_colors, nearest_view, num_train_rays, patch_size = rays
+    images, camera_to_worlds, intrinsics = views
     num_scales, num_rays = metric_depths.shape
     usable = nearest_view >= 0
     target = nearest_view.clamp_min(0)
@@ -117,9 +132,7 @@ def photometric_consistency(
     own_pixels: Float[Tensor, "rays 2"],
     nearest_view: Int[Tensor, " rays"],
     patch_size: int,
-    images: Float[Tensor, "views height width 3"],
-    camera_to_worlds: Float[Tensor, "views 3 4"],
-    intrinsics: Float[Tensor, "views 4"],
+    views: ReferenceViews,
     levels: int,
     max_error: float,
     ssim_share: float = 0.0,
@@ -132,6 +145,7 @@ def photometric_consistency(
     the other image and its coarsest level's RMSE (Eq. 2's measure, detached) is at most ``max_error``: an
     occluded or unseen patch has no depth that explains it, and would only be pulled somewhere wrong.
     """
+    images, camera_to_worlds, intrinsics = views
     pixels = patch_size * patch_size
     usable = (nearest_view >= 0).reshape(-1, pixels).all(dim=-1)
     compared = []
@@ -149,9 +163,7 @@ def novel_view_photometric_consistency(
     first_view: Int[Tensor, " rays"],
     second_view: Int[Tensor, " rays"],
     patch_pixels: int,
-    images: Float[Tensor, "views height width 3"],
-    camera_to_worlds: Float[Tensor, "views 3 4"],
-    intrinsics: Float[Tensor, "views 4"],
+    views: ReferenceViews,
     levels: int,
     max_error: float,
     ssim_share: float = 0.0,
@@ -163,6 +175,7 @@ def novel_view_photometric_consistency(
     along the training rays; a floater that the training rays look past sits on the novel rays, where this one
     sees it. Same pyramid and same patch rule as ``photometric_consistency`` (both warps inside their images,
     coarsest level's RMSE at most ``max_error``: what one of the views does not see is left out)."""
+    images, camera_to_worlds, intrinsics = views
     usable = ((first_view >= 0) & (second_view >= 0)).reshape(-1, patch_pixels).all(dim=-1)
     compared = []
     for _, level_images, level_intrinsics in view_pyramid(images, intrinsics, levels):
@@ -201,9 +214,7 @@ def pseudo_ground_truth_scale(
     directions: Float[Tensor, "rays 3"],
     metric_depths: Float[Tensor, "scales rays"],
     rendered_colors: Float[Tensor, "rays 3"],
-    images: Float[Tensor, "views height width 3"],
-    camera_to_worlds: Float[Tensor, "views 3 4"],
-    intrinsics: Float[Tensor, "views 4"],
+    views: ReferenceViews,
     threshold: float,
     kind: ErrorKind = "rmse",
 ) -> Int[Tensor, " rays"]:
@@ -214,11 +225,9 @@ def pseudo_ground_truth_scale(
     warped into the nearest training view that is not the ray's own camera.
     """
     # A render camera can sit in a training camera: "own" views are those within 1e-3 of the baseline.
-    nearest = nearest_other_view(origins, camera_to_worlds[:, :3, 3], same_position_fraction=1e-3)
-    return cross_scale_geometric_adaptation(
-        origins, directions, metric_depths, metric_depths, rendered_colors.detach(), nearest, 0, 1,
-        images, camera_to_worlds, intrinsics, threshold, kind,
-    ).chosen_scale
+    nearest = nearest_other_view(origins, views.camera_to_worlds[:, :3, 3], same_position_fraction=1e-3)
+    rays = AdaptationRays(origins, directions, metric_depths, metric_depths, rendered_colors.detach(), nearest, 0, 1)
+    return cross_scale_geometric_adaptation(rays, views, threshold, kind).chosen_scale
 
 
 def scale_choice_colors(chosen_scale: Int[Tensor, "*shape"]) -> Float[Tensor, "*shape 3"]:

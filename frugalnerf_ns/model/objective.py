@@ -9,7 +9,7 @@ the start) while the distortion weight grows with it.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, List, NamedTuple, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
 import torch
 from jaxtyping import Bool, Float, Int
@@ -21,7 +21,9 @@ from frugalnerf_ns.model.batch import NOVEL_RAYS, SPARSE_RAYS, TRAIN_RAYS, EvalB
 from frugalnerf_ns.field.outer_space import OuterSpace
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import (
+    AdaptationRays,
     AdaptationResult,
+    ReferenceViews,
     cross_scale_geometric_adaptation,
     novel_view_photometric_consistency,
     photometric_consistency as photometric_consistency_loss,
@@ -32,14 +34,6 @@ from frugalnerf_ns.model.rendering import StepRender
 
 if TYPE_CHECKING:
     from frugalnerf_ns.model.config import FrugalNeRFSettings
-
-
-class ReferenceViews(NamedTuple):
-    """The training views warps compare with, held once by the model (composited on white)."""
-
-    images: Float[Tensor, "views height width 3"]
-    camera_to_worlds: Float[Tensor, "views 3 4"]
-    intrinsics: Float[Tensor, "views 4"]
 
 
 def target_rgb(image: Tensor, background: Tensor) -> Float[Tensor, "rays 3"]:
@@ -281,8 +275,7 @@ def photometric_consistency(
     return photometric_consistency_loss(
         render.origins[rows], render.directions[rows], depth, indices[:, 0].long(),
         indices[:, [2, 1]].to(depth.dtype) + 0.5, batch.nearest_view[rows], batch.patch_size,
-        views.images, views.camera_to_worlds, views.intrinsics, cfg.photometric_levels, cfg.photometric_max_error,
-        cfg.photometric_ssim_share,
+        views, cfg.photometric_levels, cfg.photometric_max_error, cfg.photometric_ssim_share,
     )
 
 
@@ -299,8 +292,7 @@ def novel_photometric_consistency(
     second = nearest_other_view(origins.detach(), centers, own_view=first).to(first.device)
     return novel_view_photometric_consistency(
         origins, render.directions[rows], render.metric_depths[0][rows], first, second, 4,
-        views.images, views.camera_to_worlds, views.intrinsics, cfg.photometric_levels, cfg.photometric_max_error,
-        cfg.photometric_ssim_share,
+        views, cfg.photometric_levels, cfg.photometric_max_error, cfg.photometric_ssim_share,
     )
 
 
@@ -326,7 +318,7 @@ def geometric_adaptation(
     novel = novel_view_source(full.rgb[batch.novel], full.accumulation[batch.novel], render.background, white)
     source = torch.cat([target, novel])
     with record_function("geometric_adaptation"):
-        return cross_scale_geometric_adaptation(
+        rays = AdaptationRays(
             render.origins[warped],
             render.directions[warped],
             torch.stack([depth[warped] for depth in render.metric_depths]),
@@ -335,12 +327,8 @@ def geometric_adaptation(
             batch.nearest_view,
             batch.num_train,
             batch.patch_size,
-            views.images,
-            views.camera_to_worlds,
-            views.intrinsics,
-            cfg.reprojection_threshold,
-            cfg.reprojection_error,
         )
+        return cross_scale_geometric_adaptation(rays, views, cfg.reprojection_threshold, cfg.reprojection_error)
 
 
 def _add(terms: Dict[str, Tensor], name: str, value: Tensor) -> None:
