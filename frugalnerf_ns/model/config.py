@@ -39,15 +39,6 @@ class FrugalNeRFSettings(ModelConfig):
     """When the grid is upsampled (log-linear in voxel count), as fractions of the schedule (--schedule-steps,
     by default the run's iterations: the paper's steps 500, 1000, ..., 3000 of 5000); the grid optimiser
     restarts."""
-    carry_optimizer_state: bool = False
-    """At each upsampling (and shrink) resample the grid optimiser's Adam moments with the grid and continue
-    from them. Off (the reference code): a fresh Adam, whose first steps move every grid entry with any
-    gradient by about the learning rate (Adam's first step is lr * sign(gradient))."""
-    grid_lr_restarts: bool = True
-    """At each upsampling (and shrink) the grid's learning rate restarts at its first value and decays again over
-    the schedule's length (the reference code; TensoRF's lr_upsample_reset), so a run whose last upsampling is
-    half-way ends at lr * (lr_final / lr) ** 0.5. Off: the new optimiser takes the learning rate the run's decay
-    has reached (TensoRF's lr_upsample_reset 0), and the run ends at lr_final."""
     alpha_mask_at: Tuple[float, ...] = (0.2, 0.4)
     """When the occupancy (alpha) mask is recomputed, as fractions of the schedule (paper: steps 1000 and 2000
     of 5000); the box shrinks to it the first time."""
@@ -68,22 +59,6 @@ class FrugalNeRFSettings(ModelConfig):
     coarsest stride plus one entries (16k+1 with ratio 4 and two lower scales), so each lower scale's strided
     view spans the whole box. Off: the views stop short of the box's far faces (at a 176-entry axis the 1/16
     scale's last entry sits at 91 % of it) and the rest of the axis reads that entry."""
-    scale_spanning_rounding: Literal["nearest", "up", "kept"] = "nearest"
-    """How ``scale_spanning_grid`` rounds an axis to 16k+1 entries: "nearest" (the first 32^3 grid of
-    frugalnerf-cpu on LLFF's NDC box, 35x39x23, becomes 33x33x17: 41 % fewer voxels), "up" (49x49x33; the
-    final 160^3 grid 24 % more voxels), or "kept" (nearest, but the axes that lost most round up until the grid
-    keeps 3/4 of the voxels asked: 33x33x33 there, every later grid as "nearest")."""
-    scale_spanning_scales: Optional[int] = None
-    """How many lower scales ``scale_spanning_grid`` sizes the grid for, finest first: None, all of them (16k+1
-    entries with ratio 4 and two lower scales); 1, the 1/4 scale only (4k+1: closer to the voxels asked, and the
-    1/16 scale's view then spans the box only with ``lower_scale_reading`` "stretched")."""
-    lower_scale_reading: Literal["aligned", "stretched"] = "aligned"
-    """Where the lower scales read their strided views: "aligned", every entry where it lies in the full grid
-    (past a view's last entry the axis reads that entry, unless ``scale_spanning_grid``); "stretched", the
-    view's first and last entries on the box's faces, as if the view were a grid of its own over the box (the
-    reference code reads its downsampled tensors so): every grid size spans the box, and an entry is read up to
-    (R - 1) mod s full-grid voxels from where it lies (15 of an axis' 175 at R = 176 and s = 16; none at the
-    16k+1 sizes of ``scale_spanning_grid``, where both readings are the same)."""
     training_density_read: Literal["nodes", "planes"] = "nodes"
     """How a training step reads density: "nodes", every plane times its line summed on the grid's nodes once
     per step and read trilinearly at every scale (``FrugalNeRFField.shared_density_nodes``; grids above 256^3
@@ -165,13 +140,6 @@ class FrugalNeRFSettings(ModelConfig):
     rays' term with suppressing floaters where no training view looks (Sec. 3.5, "Novel View Regularizations"); at
     the CPU preset the two summands act on different scenes, and frugalnerf-cpu weighs the novel rays' 0.01 against
     the training patches' 0.1 (docs/notes/benchmarks.md, "The other split")."""
-    geo_weight_decay: float = 1.0
-    """lambda_geo at the last step over lambda_geo at the first, falling geometrically with the step as the
-    loss_weight_decay weights do; 1 keeps it constant (the paper and the reference code). Not a paper setting:
-    a strong pull while the geometry forms and a weak one while the full scale sharpens."""
-    reprojection_error: ErrorKind = "rmse"
-    """How a patch's reprojection error (Eq. 2) aggregates per-channel squared colour differences over the
-    patch: rmse (reference code) or mse. Out-of-image / behind-camera pixels count as error 1."""
     reprojection_threshold: float = 0.5
     """Rays whose least reprojection error over the scales exceeds this are left out of L_geo (paper: 0.5;
     in colour units for rmse, i.e. the warped patch is off by half the colour range)."""
@@ -181,14 +149,6 @@ class FrugalNeRFSettings(ModelConfig):
     its nearest other training view should land on its own colour, with gradient through the depth. Compared at
     the images' size and at each coarser level of ``photometric_levels`` (2x blocks each) so a depth a few pixels
     off still sees a slope."""
-    photometric_novel_weight: float = 0.0
-    """Not a paper setting (0: off, every preset): the photometric term on the novel-view rays
-    (``geometric_adaptation.novel_view_photometric_consistency``): each 2x2 patch's points at the full scale's
-    rendered depth, warped into two training views, should show the same colour in both. Same levels and
-    ``photometric_max_error`` as the training patches' term."""
-    photometric_ssim_share: float = 0.0
-    """Not a paper setting (0: plain L1): the photometric terms' share of ``losses.patch_dissimilarity`` ((1 - SSIM)
-    / 2 over 3x3 blocks of each patch), the rest L1; Monodepth's 0.85."""
     photometric_levels: int = 3
     """Image sizes the photometric term compares at: full, then 2x, 4x, ... averaged blocks."""
     photometric_max_error: float = 0.2
@@ -209,11 +169,6 @@ class FrugalNeRFSettings(ModelConfig):
     sparse_depth_weight: float = 0.5
     """lambda_sd: MSE between inverse rendered and inverse sparse-point depth (metric), at every scale
     (LLFF / DTU 0.5, RealEstate 0.05); points come from the datamanager (--pipeline.datamanager.sparse-depth)."""
-    sparse_depth_weight_decay: Optional[float] = None
-    """lambda_sd at the last step over lambda_sd at the first, falling geometrically with the step; None: the
-    schedule of the other regularisers (loss_weight_decay, the reference code's). Not a paper setting: the
-    triangulated points stay closer to the scene than the rendered depth all through a short run, so a pull that
-    fades with the regularisers may let go of them while the full scale still moves."""
     mono_depth_weight: float = 0.01
     """lambda_d of the optional monocular depth loss (1 - Pearson correlation of rendered and predicted depth,
     every scale); active only with --pipeline.datamanager.mono-depth-model."""
@@ -221,3 +176,50 @@ class FrugalNeRFSettings(ModelConfig):
     """Over the run the lower-scale colour, TV, occlusion, depth-smoothness, sparse and monocular depth weights
     fall by this factor and the distortion weight grows by it (reference schedule, the learning rate's decay:
     LLFF 0.025, DTU 0.05); 1 keeps every weight constant."""
+
+    # ---- experimental: measured and not adopted (every preset keeps the default); docs/notes/ has the runs ----
+    carry_optimizer_state: bool = False
+    """Experimental, not adopted: At each upsampling (and shrink) resample the grid optimiser's Adam moments with the
+    grid and continue from them. Off (the reference code): a fresh Adam, whose first steps move every grid entry
+    with any gradient by about the learning rate (Adam's first step is lr * sign(gradient))."""
+    grid_lr_restarts: bool = True
+    """Experimental, not adopted: At each upsampling (and shrink) the grid's learning rate restarts at its first value
+    and decays again over the schedule's length (the reference code; TensoRF's lr_upsample_reset), so a run whose
+    last upsampling is half-way ends at lr * (lr_final / lr) ** 0.5. Off: the new optimiser takes the learning rate
+    the run's decay has reached (TensoRF's lr_upsample_reset 0), and the run ends at lr_final."""
+    scale_spanning_rounding: Literal["nearest", "up", "kept"] = "nearest"
+    """Experimental, not adopted: How ``scale_spanning_grid`` rounds an axis to 16k+1 entries: "nearest" (the first
+    32^3 grid of frugalnerf-cpu on LLFF's NDC box, 35x39x23, becomes 33x33x17: 41 % fewer voxels), "up" (49x49x33;
+    the final 160^3 grid 24 % more voxels), or "kept" (nearest, but the axes that lost most round up until the grid
+    keeps 3/4 of the voxels asked: 33x33x33 there, every later grid as "nearest")."""
+    scale_spanning_scales: Optional[int] = None
+    """Experimental, not adopted: How many lower scales ``scale_spanning_grid`` sizes the grid for, finest first: None,
+    all of them (16k+1 entries with ratio 4 and two lower scales); 1, the 1/4 scale only (4k+1: closer to the voxels
+    asked, and the 1/16 scale's view then spans the box only with ``lower_scale_reading`` "stretched")."""
+    lower_scale_reading: Literal["aligned", "stretched"] = "aligned"
+    """Experimental, not adopted: Where the lower scales read their strided views: "aligned", every entry where it lies
+    in the full grid (past a view's last entry the axis reads that entry, unless ``scale_spanning_grid``);
+    "stretched", the view's first and last entries on the box's faces, as if the view were a grid of its own over
+    the box (the reference code reads its downsampled tensors so): every grid size spans the box, and an entry is
+    read up to (R - 1) mod s full-grid voxels from where it lies (15 of an axis' 175 at R = 176 and s = 16; none at
+    the 16k+1 sizes of ``scale_spanning_grid``, where both readings are the same)."""
+    reprojection_error: ErrorKind = "rmse"
+    """Experimental, not adopted: How a patch's reprojection error (Eq. 2) aggregates per-channel squared colour
+    differences over the patch: rmse (reference code) or mse. Out-of-image / behind-camera pixels count as error 1."""
+    geo_weight_decay: float = 1.0
+    """Experimental, not adopted: lambda_geo at the last step over lambda_geo at the first, falling geometrically with
+    the step as the loss_weight_decay weights do; 1 keeps it constant (the paper and the reference code). Not a
+    paper setting: a strong pull while the geometry forms and a weak one while the full scale sharpens."""
+    photometric_novel_weight: float = 0.0
+    """Experimental, not adopted: Not a paper setting (0: off, every preset): the photometric term on the novel-view
+    rays (``geometric_adaptation.novel_view_photometric_consistency``): each 2x2 patch's points at the full scale's
+    rendered depth, warped into two training views, should show the same colour in both. Same levels and
+    ``photometric_max_error`` as the training patches' term."""
+    photometric_ssim_share: float = 0.0
+    """Experimental, not adopted: Not a paper setting (0: plain L1): the photometric terms' share of
+    ``losses.patch_dissimilarity`` ((1 - SSIM) / 2 over 3x3 blocks of each patch), the rest L1; Monodepth's 0.85."""
+    sparse_depth_weight_decay: Optional[float] = None
+    """Experimental, not adopted: lambda_sd at the last step over lambda_sd at the first, falling geometrically with
+    the step; None: the schedule of the other regularisers (loss_weight_decay, the reference code's). Not a paper
+    setting: the triangulated points stay closer to the scene than the rendered depth all through a short run, so a
+    pull that fades with the regularisers may let go of them while the full scale still moves."""
