@@ -1,6 +1,7 @@
 """FrugalNeRF's loss terms, one function each (pure torch): every term the model adds to its objective.
 
-Eq. numbers refer to ``../shared/paper/frugalnerf-paper.tex``. What the geometric adaptation loss compares
+Eq. numbers are the paper's (Lin et al., FrugalNeRF, CVPR 2025, main text; docs/method.md maps each to its
+function and test). What the geometric adaptation loss compares
 (the reprojection error and the pseudo depth, Eq. 2-4 and 6-8) is geometry and lives in
 ``reprojection.py``; the loss itself (Eq. 5, 9) is here.
 """
