@@ -79,6 +79,17 @@ def test_sparse_depth_loss_reads_the_trailing_rays_at_every_scale(model_and_batc
     loss_dict["sparse_depth"].backward()
     grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
+    from frugalnerf_ns.model.losses import relative_disparity_loss
+
+    model.config.sparse_depth_error = "relative"
+    try:
+        outputs = model(bundle)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        expected = sum(relative_disparity_loss(outputs[k][-n:, 0], batch.sparse_depth)
+                       for k in ("depth", "depth_scale1", "depth_scale2"))
+        assert float(loss_dict["sparse_depth"]) == pytest.approx(model.config.sparse_depth_weight * float(expected), rel=1e-5)
+    finally:
+        model.config.sparse_depth_error = "inverse"
     model.config.sparse_depth_weight = 0.0
     try:
         outputs = model(bundle)
@@ -422,3 +433,45 @@ def test_scale_choice_colors_use_one_colour_per_scale_and_grey_for_left_out():
     assert torch.allclose(colors[0, 0], torch.tensor(LEFT_OUT_COLOR))
     for scale, pixel in ((0, colors[0, 1]), (1, colors[1, 0]), (2, colors[1, 1])):
         assert torch.allclose(pixel, torch.tensor(SCALE_CHOICE_COLORS[scale]))
+
+
+def _variant(model, metadata, **fields):
+    """``model``'s set-up with other settings or scene metadata, warping into the same training views."""
+    import dataclasses
+
+    config = dataclasses.replace(model.config, **fields)
+    torch.manual_seed(0)
+    variant = config.setup(scene_box=model.scene_box, num_train_data=model.num_train_data, metadata=metadata)
+    variant.reference_views = model.reference_views
+    variant.train()
+    return variant
+
+
+def test_a_room_beyond_the_box_drops_the_warp_losses_and_weighs_sparse_depth_relatively(model_and_batch):
+    from frugalnerf_ns.model.losses import inverse_depth_loss, relative_disparity_loss
+
+    model, bundle, batch = model_and_batch
+    n = batch.sparse_depth.shape[0]
+    scales = ("depth", "depth_scale1", "depth_scale2")
+
+    def losses(variant):
+        torch.manual_seed(1)
+        outputs = variant(bundle)
+        return outputs, variant.get_loss_dict(outputs, batch, variant.get_metrics_dict(outputs, batch))
+
+    settings = dict(room_warp_losses=False, sparse_depth_error="auto", photometric_weight=0.1)
+    # No room (LLFF, DTU, Blender): the settings change nothing; the warp losses act, L_sd is Eq. 11's.
+    outputs, terms = losses(_variant(model, {}, **settings))
+    assert {"geo_loss", "photometric"} <= set(terms) and float(terms["geo_loss"]) > 0
+    expected = sum(inverse_depth_loss(outputs[k][-n:, 0], batch.sparse_depth) for k in scales)
+    assert float(terms["sparse_depth"]) == pytest.approx(model.config.sparse_depth_weight * float(expected), rel=1e-5)
+    # An object with the room beyond its box: no L_geo, no photometric term, L_sd relative to each point's depth.
+    room = _variant(model, {"far_background": True}, **settings)
+    assert room.has_room
+    outputs, terms = losses(room)
+    assert "geo_loss" not in terms and "photometric" not in terms and "geo_scale0_fraction" not in terms
+    expected = sum(relative_disparity_loss(outputs[k][-n:, 0], batch.sparse_depth) for k in scales)
+    assert float(terms["sparse_depth"]) == pytest.approx(model.config.sparse_depth_weight * float(expected), rel=1e-5)
+    # The paper's defaults keep both in such a scene.
+    _, terms = losses(_variant(model, {"far_background": True}, photometric_weight=0.1))
+    assert {"geo_loss", "photometric"} <= set(terms) and float(terms["geo_loss"]) > 0

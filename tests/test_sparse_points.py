@@ -9,7 +9,7 @@ import torch
 from PIL import Image
 
 from frugalnerf_ns.cache import cache_file_name
-from frugalnerf_ns.model.losses import inverse_depth_loss
+from frugalnerf_ns.model.losses import inverse_depth_loss, relative_disparity_loss
 from frugalnerf_ns.progress import Progress
 from frugalnerf_ns.geometry.reprojection import project_to_camera
 from tests.photo_scene import texture
@@ -120,6 +120,26 @@ def test_inverse_depth_loss_value_gradient_and_empty():
     # Too far (4 > 2): gradient descent brings the rendered depth closer.
     assert rendered.grad[1] > 0 and rendered.grad[0] == 0
     assert float(inverse_depth_loss(torch.zeros(0), torch.zeros(0))) == 0.0
+
+
+def test_relative_disparity_loss_is_scale_free_huber_and_bounded():
+    rendered = torch.tensor([2.0, 1.0, 20.0, 0.0], requires_grad=True)
+    target = torch.tensor([2.0, 1.1, 25.0, 30.0])
+    loss = relative_disparity_loss(rendered, target, delta=0.2)
+    errors = [0.0, 0.1, 0.25, 30.0 / 1e-3 - 1.0]  # target / rendered - 1, the empty ray clamped at 1e-3
+    per_point = [0.5 * e * e / 0.2 if e < 0.2 else e - 0.1 for e in errors]
+    assert float(loss.detach()) == pytest.approx(sum(per_point) / 4, rel=1e-5)
+    loss.backward()
+    assert torch.isfinite(rendered.grad).all() and rendered.grad[0] == 0
+    # Too near (20 < 25, 1 < 1.1): gradient descent moves the rendered depth out.
+    assert rendered.grad[1] < 0 and rendered.grad[2] < 0
+    # The same relative error weighs the same at any distance (Eq. 11's inverse MSE: 100x less at 10x the depth).
+    near = relative_disparity_loss(torch.tensor([1.0]), torch.tensor([1.5]))
+    far = relative_disparity_loss(torch.tensor([10.0]), torch.tensor([15.0]))
+    assert float(near) == pytest.approx(float(far), rel=1e-6)
+    assert float(inverse_depth_loss(torch.tensor([1.0]), torch.tensor([1.5]))) == pytest.approx(
+        100 * float(inverse_depth_loss(torch.tensor([10.0]), torch.tensor([15.0]))), rel=1e-5)
+    assert float(relative_disparity_loss(torch.zeros(0), torch.zeros(0))) == 0.0
 
 
 def _sparse(n=4):

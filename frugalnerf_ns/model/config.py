@@ -140,6 +140,12 @@ class FrugalNeRFSettings(ModelConfig):
     rays' term with suppressing floaters where no training view looks (Sec. 3.5, "Novel View Regularizations"); at
     the CPU preset the two summands act on different scenes, and frugalnerf-cpu weighs the novel rays' 0.01 against
     the training patches' 0.1 (docs/notes/benchmarks.md, "The other split")."""
+    room_warp_losses: bool = True
+    """Where the scene is an object in a metric box with the room beyond it (a far background: photos circling their
+    subject), whether the losses that warp pixels between training views act: L_geo (Eq. 10, both summands) and the
+    photometric terms. Not a paper setting (the paper's protocols, LLFF in NDC and DTU on a mask, have no such
+    scene). frugalnerf-cpu: False: on the juice box's wide split they pull the room into streaks inside the box
+    (docs/notes/captures.md, "The room beyond the box without the warp losses")."""
     reprojection_threshold: float = 0.5
     """Rays whose least reprojection error over the scales exceeds this are left out of L_geo (paper: 0.5;
     in colour units for rmse, i.e. the warped patch is off by half the colour range)."""
@@ -169,6 +175,12 @@ class FrugalNeRFSettings(ModelConfig):
     sparse_depth_weight: float = 0.5
     """lambda_sd: MSE between inverse rendered and inverse sparse-point depth (metric), at every scale
     (LLFF / DTU 0.5, RealEstate 0.05); points come from the datamanager (--pipeline.datamanager.sparse-depth)."""
+    sparse_depth_error: Literal["auto", "inverse", "relative"] = "inverse"
+    """How L_sd measures a point's depth error: "inverse", Eq. 11's MSE of inverse depths (the paper); "relative",
+    the inverse-depth difference over the point's own inverse depth under a Huber penalty
+    (``losses.relative_disparity_loss``), so that far points pull as hard as near ones; "auto", relative where the
+    scene is an object in a metric box with the room beyond it (a far background: phone captures), inverse
+    elsewhere (LLFF in NDC, DTU, Blender: the paper's protocols)."""
     mono_depth_weight: float = 0.01
     """lambda_d of the optional monocular depth loss (1 - Pearson correlation of rendered and predicted depth,
     every scale); active only with --pipeline.datamanager.mono-depth-model."""

@@ -347,6 +347,12 @@ class FrugalNeRFModel(Model):
             return self.field.num_scales
         return 1
 
+    @property
+    def has_room(self) -> bool:
+        """An object in a metric box with the room beyond it (the scene has a far background: photos circling their
+        subject); some losses weigh differently there (``objective.geo_weights``, ``uses_relative_sparse_depth``)."""
+        return self.far_background is not None
+
     # ---- losses and metrics -----------------------------------------------------------------------------
     def get_metrics_dict(self, outputs, batch: Union[TrainBatch, EvalBatch]) -> Dict[str, Tensor]:
         metrics: Dict[str, Tensor] = {}
@@ -355,7 +361,7 @@ class FrugalNeRFModel(Model):
             target = objective.target_rgb(batch.image.to(self.device), objective.train_rows(step.background, batch))
             for scale, render in enumerate(step.scales):
                 metrics[f"psnr{scale_suffix(scale)}"] = capped_psnr(render.rgb[batch.train].detach(), target)
-            adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views)
+            adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views, self.has_room)
             if adaptation is not None:
                 stats = scale_statistics(adaptation.chosen_scale, self.field.num_scales)
                 self.scale_history.record(0 if batch.step is None else batch.step, stats)
@@ -377,10 +383,11 @@ class FrugalNeRFModel(Model):
             step: StepRender = outputs["step"]
             adaptation = (metrics_dict or {}).get(ADAPTATION_METRIC)
             if adaptation is None:  # called without this step's metrics
-                adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views)
+                adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views, self.has_room)
             terms = objective.training_losses(
                 self.config, self.field, step, batch, self.reference_views, decay, self.occlusion_active,
                 geo_factor=factors.geo, sparse_factor=factors.sparse, adaptation=adaptation,
+                relative_sparse_depth=objective.uses_relative_sparse_depth(self.config, self.has_room), room=self.has_room,
             )
             if self.outer_space is not None and self.outer_space.is_active:
                 terms.update(objective.outer_space_regularizers(self.config, self.outer_space, decay))

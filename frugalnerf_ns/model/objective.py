@@ -120,6 +120,12 @@ def depth_through_box(render: StepRender, scale: int, rows: slice) -> Tensor:
     return accumulation * depth + (1.0 - accumulation) * render.background_depth[rows]
 
 
+def uses_relative_sparse_depth(cfg: "FrugalNeRFSettings", has_far_background: bool) -> bool:
+    """Whether L_sd weighs depth errors relative to each point's depth (``sparse_depth_error``; "auto": where the
+    scene has a far background, an object in a metric box whose room's points lie 10-140 units away)."""
+    return cfg.sparse_depth_error == "relative" or (cfg.sparse_depth_error == "auto" and has_far_background)
+
+
 def training_losses(
     cfg: "FrugalNeRFSettings",
     field_: FrugalNeRFField,
@@ -131,11 +137,14 @@ def training_losses(
     geo_factor: float = 1.0,
     sparse_factor: Optional[float] = None,
     adaptation: Optional[AdaptationResult] = None,
+    relative_sparse_depth: bool = False,
+    room: bool = False,
 ) -> Dict[str, Tensor]:
     """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
     lambda_geo (its schedule, geo_weight_decay), ``sparse_factor`` lambda_sd (None: ``decay``, as the other
     regularisers); ``adaptation``: this step's ``geometric_adaptation`` where the metrics computed it (else it
-    is computed here)."""
+    is computed here); ``relative_sparse_depth``: L_sd as ``losses.relative_disparity_loss`` (``uses_relative_sparse_depth``);
+    ``room``: the scene has the room beyond its box (``geo_weights``)."""
     device = render.background.device
     target = target_rgb(batch.image.to(device), train_rows(render.background, batch))
     predictions = [scale.rgb[batch.train] for scale in render.scales]
@@ -144,23 +153,25 @@ def training_losses(
         terms.update(grid_regularizers(cfg, field_, decay))
         terms.update(sample_regularizers(cfg, field_, render, decay, occlusion_active))
     if adaptation is None:
-        adaptation = geometric_adaptation(cfg, render, batch, views)
+        adaptation = geometric_adaptation(cfg, render, batch, views, room)
     if adaptation is not None:  # Eq. 10: training patches and novel rays
-        train_weight, novel_weight = geo_weights(cfg)
+        train_weight, novel_weight = geo_weights(cfg, room)
         if train_weight == novel_weight:  # one weight (the paper): the same float operations as before the split
             geo = train_weight * (adaptation.loss_train + adaptation.loss_novel)
         else:
             geo = train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel
         terms["geo_loss"] = geo_factor * geo
-    if cfg.photometric_weight > 0 and views is not None:
+    warps = warp_losses_act(cfg, room)
+    if cfg.photometric_weight > 0 and views is not None and warps:
         with record_function("photometric_consistency"):
             terms["photometric"] = cfg.photometric_weight * photometric_consistency(cfg, render, batch, views)
-    if cfg.photometric_novel_weight > 0 and views is not None and batch.num_novel >= 4:
+    if cfg.photometric_novel_weight > 0 and views is not None and batch.num_novel >= 4 and warps:
         with record_function("photometric_consistency_novel"):
             terms["photometric_novel"] = cfg.photometric_novel_weight * novel_photometric_consistency(cfg, render, batch, views)
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
+        depth_error = losses.relative_disparity_loss if relative_sparse_depth else losses.inverse_depth_loss
         sparse = sum(
-            losses.inverse_depth_loss(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
+            depth_error(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
             for scale in range(len(render.scales))
         )
         terms["sparse_depth"] = cfg.sparse_depth_weight * (decay if sparse_factor is None else sparse_factor) * sparse
@@ -296,20 +307,28 @@ def novel_photometric_consistency(
     )
 
 
-def geo_weights(cfg: "FrugalNeRFSettings") -> Tuple[float, float]:
+def warp_losses_act(cfg: "FrugalNeRFSettings", room: bool) -> bool:
+    """Whether the losses that warp pixels between training views (L_geo, the photometric terms) act: everywhere but
+    in a scene with the room beyond its box (``room``: the model has a far background) with room_warp_losses off."""
+    return cfg.room_warp_losses or not room
+
+
+def geo_weights(cfg: "FrugalNeRFSettings", room: bool = False) -> Tuple[float, float]:
     """lambda_geo of Eq. 10's two summands (training patches, novel rays): geo_weight for both unless
-    geo_novel_weight sets the novel rays' own."""
+    geo_novel_weight sets the novel rays' own; 0 for both where ``warp_losses_act`` says no."""
+    if not warp_losses_act(cfg, room):
+        return 0.0, 0.0
     novel = cfg.geo_weight if cfg.geo_novel_weight is None else cfg.geo_novel_weight
     return cfg.geo_weight, novel
 
 
 def geometric_adaptation(
-    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews]
+    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews], room: bool = False
 ) -> Optional[AdaptationResult]:
     """Eq. 2-9 on the step's training and novel rays (Eq. 6's source colour: ``novel_view_source``); the model
     computes it once a step, with the metrics, and hands it to the losses. None when lambda_geo is 0 (both
-    summands) or there are no training views to warp into."""
-    if max(geo_weights(cfg)) <= 0 or views is None:
+    summands; ``room`` as in ``geo_weights``) or there are no training views to warp into."""
+    if max(geo_weights(cfg, room)) <= 0 or views is None:
         return None
     warped = batch.warped
     white = torch.ones(3, device=render.background.device)

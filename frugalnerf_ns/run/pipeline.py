@@ -124,8 +124,9 @@ def scene_summary(datamanager, model) -> str:
         occlusion = "off (weight 0)"
     else:
         occlusion = "on" if model.occlusion_active else "off (not an object scene)"
-    if max(geo_weights(cfg)) <= 0:
-        geo = "off (weight 0)"
+    room = bool(getattr(model, "has_room", False))
+    if max(geo_weights(cfg, room)) <= 0:
+        geo = "off (a room beyond the box: --pipeline.model.room-warp-losses)" if room and max(geo_weights(cfg)) > 0 else "off (weight 0)"
     elif views < 2:
         geo = "novel rays only (one view)" if datamanager.novel_cameras is not None else "off (one view, no novel rays)"
     else:

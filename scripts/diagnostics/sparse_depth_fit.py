@@ -36,7 +36,9 @@ def depth_at_points(pipeline, sparse) -> torch.Tensor:
         out = model.get_outputs_for_camera_ray_bundle(bundle)
     depth = out["depth"].reshape(-1).cpu()
     far = getattr(model, "far_background", None)
-    if far is not None:
+    outer = getattr(model, "outer_space", None)
+    # With the outer space the model's depth already runs through the box and beyond (depth_through_outer_space).
+    if far is not None and far.has_shell and (outer is None or not outer.is_active):
         flat = bundle.reshape((-1,))
         far_depth = far.distance(flat.origins, flat.directions).reshape(-1).cpu()
         accumulation = out["accumulation"].reshape(-1).cpu()
