@@ -15,7 +15,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC
-from frugalnerf_ns.model.objective import geo_weights
+from frugalnerf_ns.model.objective import geo_weights, uses_relative_sparse_depth
 from frugalnerf_ns.run.checkpoints import use_intact_checkpoints_in_eval_tools
 from frugalnerf_ns.errors import one_line_errors
 from frugalnerf_ns.tools.video import teach_ns_render_spiral
@@ -115,7 +115,8 @@ def scene_summary(datamanager, model) -> str:
     elif datamanager.sparse is None:
         sparse = f"off (fewer than {dm.min_sparse_points} points)"
     else:
-        sparse = f"on ({datamanager.sparse.num_points} points)"
+        relative = uses_relative_sparse_depth(cfg, bool(getattr(model, "has_room", False)))
+        sparse = f"on ({datamanager.sparse.num_points} points{', errors relative to their depth' if relative else ''})"
     if datamanager.novel_cameras is not None:
         novel = f"on ({len(datamanager.novel_cameras)} {datamanager.novel_path} poses)"
     else:
