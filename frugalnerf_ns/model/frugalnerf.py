@@ -387,7 +387,7 @@ class FrugalNeRFModel(Model):
             terms = objective.training_losses(
                 self.config, self.field, step, batch, self.reference_views, decay, self.occlusion_active,
                 geo_factor=factors.geo, sparse_factor=factors.sparse, adaptation=adaptation,
-                relative_sparse_depth=objective.uses_relative_sparse_depth(self.config, self.has_room), room=self.has_room,
+                room=self.has_room,
             )
             if self.outer_space is not None and self.outer_space.is_active:
                 terms.update(objective.outer_space_regularizers(self.config, self.outer_space, decay))

@@ -120,10 +120,11 @@ def depth_through_box(render: StepRender, scale: int, rows: slice) -> Tensor:
     return accumulation * depth + (1.0 - accumulation) * render.background_depth[rows]
 
 
-def uses_relative_sparse_depth(cfg: "FrugalNeRFSettings", has_far_background: bool) -> bool:
+def uses_relative_sparse_depth(cfg: "FrugalNeRFSettings", room: bool) -> bool:
     """Whether L_sd weighs depth errors relative to each point's depth (``sparse_depth_error``; "auto": where the
-    scene has a far background, an object in a metric box whose room's points lie 10-140 units away)."""
-    return cfg.sparse_depth_error == "relative" or (cfg.sparse_depth_error == "auto" and has_far_background)
+    scene has the room beyond its box, ``room``: the model has a far background; the room's points lie 10-140
+    units away)."""
+    return cfg.sparse_depth_error == "relative" or (cfg.sparse_depth_error == "auto" and room)
 
 
 def training_losses(
@@ -137,14 +138,12 @@ def training_losses(
     geo_factor: float = 1.0,
     sparse_factor: Optional[float] = None,
     adaptation: Optional[AdaptationResult] = None,
-    relative_sparse_depth: bool = False,
     room: bool = False,
 ) -> Dict[str, Tensor]:
     """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
     lambda_geo (its schedule, geo_weight_decay), ``sparse_factor`` lambda_sd (None: ``decay``, as the other
     regularisers); ``adaptation``: this step's ``geometric_adaptation`` where the metrics computed it (else it
-    is computed here); ``relative_sparse_depth``: L_sd as ``losses.relative_disparity_loss`` (``uses_relative_sparse_depth``);
-    ``room``: the scene has the room beyond its box (``geo_weights``)."""
+    is computed here); ``room``: the scene has the room beyond its box (``geo_weights``, ``uses_relative_sparse_depth``)."""
     device = render.background.device
     target = target_rgb(batch.image.to(device), train_rows(render.background, batch))
     predictions = [scale.rgb[batch.train] for scale in render.scales]
@@ -169,7 +168,7 @@ def training_losses(
         with record_function("photometric_consistency_novel"):
             terms["photometric_novel"] = cfg.photometric_novel_weight * novel_photometric_consistency(cfg, render, batch, views)
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
-        depth_error = losses.relative_disparity_loss if relative_sparse_depth else losses.inverse_depth_loss
+        depth_error = losses.relative_disparity_loss if uses_relative_sparse_depth(cfg, room) else losses.inverse_depth_loss
         sparse = sum(
             depth_error(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
             for scale in range(len(render.scales))

@@ -108,6 +108,7 @@ def scene_summary(datamanager, model) -> str:
     grid = f"{side}^3 final grid " + (
         f"(auto: {pixels:,} training pixels)" if cfg.auto_grid else "(--pipeline.model.final-voxels; --pipeline.model.auto-grid sizes it from the pixels)"
     )
+    room = bool(getattr(model, "has_room", False))  # an object in a box with the room beyond it
     if not dm.sparse_depth or dm.num_sparse_rays_per_batch <= 0:
         sparse = "off (option)"
     elif views < 2:
@@ -115,8 +116,8 @@ def scene_summary(datamanager, model) -> str:
     elif datamanager.sparse is None:
         sparse = f"off (fewer than {dm.min_sparse_points} points)"
     else:
-        relative = uses_relative_sparse_depth(cfg, bool(getattr(model, "has_room", False)))
-        sparse = f"on ({datamanager.sparse.num_points} points{', errors relative to their depth' if relative else ''})"
+        relative = ", errors relative to their depth" if uses_relative_sparse_depth(cfg, room) else ""
+        sparse = f"on ({datamanager.sparse.num_points} points{relative})"
     if datamanager.novel_cameras is not None:
         novel = f"on ({len(datamanager.novel_cameras)} {datamanager.novel_path} poses)"
     else:
@@ -125,7 +126,6 @@ def scene_summary(datamanager, model) -> str:
         occlusion = "off (weight 0)"
     else:
         occlusion = "on" if model.occlusion_active else "off (not an object scene)"
-    room = bool(getattr(model, "has_room", False))
     if max(geo_weights(cfg, room)) <= 0:
         geo = "off (a room beyond the box: --pipeline.model.room-warp-losses)" if room and max(geo_weights(cfg)) > 0 else "off (weight 0)"
     elif views < 2:
