@@ -475,3 +475,46 @@ def test_a_room_beyond_the_box_drops_the_warp_losses_and_weighs_sparse_depth_rel
     # The paper's defaults keep both in such a scene.
     _, terms = losses(_variant(model, {"far_background": True}, photometric_weight=0.1))
     assert {"geo_loss", "photometric"} <= set(terms) and float(terms["geo_loss"]) > 0
+
+
+def test_in_a_room_l_geo_can_compare_the_whole_rays_depth_contracted_beyond_the_box(model_and_batch):
+    from frugalnerf_ns.geometry.contraction import contract_along_ray
+    from frugalnerf_ns.geometry.raymarch import intersect_aabb
+    from frugalnerf_ns.model.objective import geo_loss_depths
+
+    model, bundle, batch = model_and_batch
+
+    def geo(variant):
+        torch.manual_seed(1)
+        outputs = variant(bundle)
+        terms = variant.get_loss_dict(outputs, batch, variant.get_metrics_dict(outputs, batch))
+        return outputs["step"], terms["geo_loss"]
+
+    box = _variant(model, {"far_background": True})
+    step, box_loss = geo(box)
+    rows = batch.warped
+    # Where the outer space is modelled, the step knows where each ray leaves the box.
+    segments = intersect_aabb(step.origins, step.directions, box.field.aabb, box.config.near_plane)
+    assert torch.allclose(step.box_exit[segments.hit], segments.t_far[segments.hit])
+    # The default compares the box's own depths (the paper's rendered depth); nothing beyond the box moves it.
+    assert torch.equal(geo_loss_depths(box.config, step, rows), torch.stack([s.depth[rows, 0] for s in step.scales]))
+    outer = [p for p in box.outer_space.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(box_loss, outer, allow_unused=True)
+    assert all(g is None or float(g.abs().max()) == 0.0 for g in grads)
+    # "contracted": the whole ray's depth, unchanged within the box, bounded by twice the exit beyond it; the outer
+    # grids now get L_geo's gradient.
+    contracted = _variant(model, {"far_background": True}, room_geo_depth="contracted")
+    step, loss = geo(contracted)
+    depths = geo_loss_depths(contracted.config, step, rows)
+    whole = torch.stack([d[rows] for d in step.metric_depths])
+    exit_distance = step.box_exit[rows]
+    assert torch.equal(depths, contract_along_ray(whole, exit_distance[None]))
+    within = whole <= exit_distance[None]
+    assert torch.equal(depths[within], whole[within]) and bool((depths < 2 * exit_distance[None]).all())
+    outer = [p for p in contracted.outer_space.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(loss, outer, allow_unused=True)
+    assert any(g is not None and float(g.abs().max()) > 0 for g in grads)
+    # Without a room the setting changes nothing.
+    torch.manual_seed(1)
+    plain = _variant(model, {}, room_geo_depth="contracted")
+    assert plain(bundle)["step"].box_exit is None

@@ -229,6 +229,15 @@ class FrugalNeRFSettings(ModelConfig):
     the step; None: the schedule of the other regularisers (loss_weight_decay, the reference code's). Not a paper
     setting: the triangulated points stay closer to the scene than the rendered depth all through a short run, so a
     pull that fades with the regularisers may let go of them while the full scale still moves."""
+    room_geo_depth: Literal["box", "contracted"] = "box"
+    """Experimental, not adopted: where the scene is an object in a metric box with the room beyond it (a far background with the outer grids:
+    photos circling their subject), the depth L_geo (Eq. 5, 9) compares: "box", the box's own render (the paper's
+    rendered depth; a ray whose content lies beyond the box has an arbitrary normalised depth there, and agreeing
+    scales ask for a surface in the box); "contracted", the whole ray's depth (the one its warp places points at),
+    unchanged up to the ray's exit from the box t_f and beyond it t_f (2 - t_f / d), mip-NeRF 360's contraction
+    along the ray (bounded: the room's 4-144 units weigh as much as the box's last half). Not a paper setting. The
+    juice box's wide split, seed 42: 13.34 / 0.445 / 0.660 against 13.55 / 0.442 / 0.601 ("box"), its training views
+    16.7 against 18.0 dB: docs/notes/captures.md, "L_geo and the room: three more probes"."""
     room_warp_losses: bool = True
     """Experimental, not adopted: Where the scene is an object in a metric box with the room beyond it (a far
     background: photos circling their subject), whether the losses that warp pixels between training views act:

@@ -315,9 +315,13 @@ class FrugalNeRFModel(Model):
                 outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
         if self.training:
             # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
-            outer_distortion = None if front is None else (front.distortion + behind.distortion).mean()  # type: ignore[union-attr]
+            outer_distortion = box_exit = None
+            if front is not None:
+                outer_distortion = (front.distortion + behind.distortion).mean()  # type: ignore[union-attr]
+                to_centre = (self.field.aabb.mean(dim=0) - world_origins).norm(dim=-1)
+                box_exit = torch.where(segments.hit, segments.t_far, to_centre)
             outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths, far_depth,
-                                         outer_distortion=outer_distortion)
+                                         outer_distortion=outer_distortion, box_exit=box_exit)
         elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
             chosen = pseudo_ground_truth_scale(
                 world_origins, world_directions, torch.stack(metric_depths), outputs["rgb"].reshape(-1, 3),

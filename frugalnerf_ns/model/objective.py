@@ -28,6 +28,7 @@ from frugalnerf_ns.model.geometric_adaptation import (
     novel_view_photometric_consistency,
     photometric_consistency as photometric_consistency_loss,
 )
+from frugalnerf_ns.geometry.contraction import contract_along_ray
 from frugalnerf_ns.geometry.novel_views import nearest_other_view
 from frugalnerf_ns.scoring.metrics import composite
 from frugalnerf_ns.model.rendering import StepRender
@@ -340,13 +341,23 @@ def geometric_adaptation(
             render.origins[warped],
             render.directions[warped],
             torch.stack([depth[warped] for depth in render.metric_depths]),
-            torch.stack([scale.depth[warped, 0] for scale in render.scales]),
+            geo_loss_depths(cfg, render, warped),
             source,
             batch.nearest_view,
             batch.num_train,
             batch.patch_size,
         )
         return cross_scale_geometric_adaptation(rays, views, cfg.reprojection_threshold, cfg.reprojection_error)
+
+
+def geo_loss_depths(cfg: "FrugalNeRFSettings", render: StepRender, rows: slice) -> Float[Tensor, "scales rays"]:
+    """The depths L_geo compares (Eq. 5, 9) for the rays ``rows``: each scale's depth as the model renders it (NDC
+    depth in NDC scenes, the box's own in a box), or where the space beyond the box is modelled and
+    ``room_geo_depth`` is "contracted", the whole ray's depth contracted beyond the box (``contract_along_ray``)."""
+    if cfg.room_geo_depth == "contracted" and render.box_exit is not None:
+        exit_distance = render.box_exit[rows]
+        return torch.stack([contract_along_ray(depth[rows], exit_distance) for depth in render.metric_depths])
+    return torch.stack([scale.depth[rows, 0] for scale in render.scales])
 
 
 def _add(terms: Dict[str, Tensor], name: str, value: Tensor) -> None:
