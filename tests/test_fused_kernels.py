@@ -172,3 +172,52 @@ def test_the_fused_feature_read_gives_the_planes_colours(scale, stretched, monke
 
 
 AABB_FEATURES = torch.tensor([[-1.0, -0.8, -1.2], [1.0, 0.8, 1.2]])
+
+
+def _training_render(field, scale, kernels, origins, directions):
+    from frugalnerf_ns.model.rendering import render_scale
+
+    segments = intersect_aabb(origins, directions, field.aabb, 0.0)
+    torch.manual_seed(5)  # the same jitter for both paths
+    with field.shared_density_nodes():
+        out = render_scale(field, origins, directions, scale, torch.tensor([0.2, 0.5, 1.0]), segments,
+                           SETTINGS["step_ratio"], SETTINGS["distance_scale"], SETTINGS["max_samples_per_ray"],
+                           SETTINGS["weight_threshold"], jitter=True, kernels=kernels)
+    # What the losses read: pixels, depth, weights, densities; gradients to every density plane and line.
+    loss = (out.rgb * torch.tensor([0.3, -0.7, 1.1])).sum() + out.depth.sum() * 0.05 + (out.weights ** 2).sum()
+    params = [*field.density_grid.planes, *field.density_grid.lines]
+    return out, torch.autograd.grad(loss, params)
+
+
+@needs_warp
+@pytest.mark.parametrize("scale", [0, 1, 2])
+@pytest.mark.parametrize("mask,activation,stretched", [(False, "relu", False), (True, "relu", True),
+                                                       (True, "softplus", False), (False, "softplus", True)])
+def test_the_fused_training_density_gives_torchs_renders_and_gradients(scale, mask, activation, stretched):
+    field = opaque_field(seed=4, mask=mask)
+    field.density_activation = activation
+    field.stretched = stretched
+    origins, directions = rays(400, seed=6)  # 20 point away from the box: no sample inside
+    reference, reference_grads = _training_render(field, scale, None, origins, directions)
+    ours, grads = _training_render(field, scale, wp, origins, directions)
+    inside = reference.densities > 0
+    # ReLU: some rays turn opaque early (the softplus field's densities are a shifted softplus, fainter).
+    assert bool(inside.any()) and bool((reference.weights.sum(-1) > (0.99 if activation == "relu" else 0.01)).any())
+    assert torch.allclose(ours.densities, reference.densities, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(ours.weights, reference.weights, atol=1e-6)
+    assert torch.allclose(ours.rgb, reference.rgb, atol=1e-5) and torch.allclose(ours.depth, reference.depth, atol=1e-4)
+    for ours_grad, reference_grad in zip(grads, reference_grads):
+        scale_of = float(reference_grad.abs().max())
+        assert scale_of > 0 and torch.allclose(ours_grad, reference_grad, rtol=1e-5, atol=1e-5 * scale_of)
+
+
+@needs_warp
+def test_the_fused_training_density_of_an_empty_grid_is_zero_with_zero_gradient():
+    field = opaque_field(seed=4)
+    with torch.no_grad():
+        for plane in field.density_grid.planes:
+            plane.zero_()
+    origins, directions = rays(100, seed=6)
+    ours, grads = _training_render(field, 0, wp, origins, directions)
+    assert float(ours.densities.abs().max()) == 0.0 and float(ours.accumulation.max()) == 0.0
+    assert all(float(g.abs().max()) == 0.0 for g in grads)

@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
 from frugalnerf_ns.field.density import BakedDensity, DensityActivation, activate_density
+from frugalnerf_ns.field.fused_kernels import SlotGrid
 from frugalnerf_ns.field.tensorial import (
     OptimizerState,
     TensorVMGrid,
@@ -208,15 +209,28 @@ class FrugalNeRFField(nn.Module):
     def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
         coords = self.normalize(positions)
         if self._shared_nodes is not None and not coords.requires_grad:  # the node reads give no position gradient
-            nodes = self._shared_nodes[0]
-            # Made at the first read with gradients (one made under no_grad would carry none to the planes).
-            if nodes is None or (torch.is_grad_enabled() and not nodes.requires_grad):
-                nodes = self._shared_nodes[0] = self.density_grid.node_sum()
-            raw = read_node_sum(nodes, coords, self.stride(scale), self.stretched)
+            raw = read_node_sum(self._density_nodes(), coords, self.stride(scale), self.stretched)
         else:
             products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
             raw = sum(p.sum(dim=-1) for p in products)
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
+
+    def _density_nodes(self) -> Tensor:
+        """Inside ``shared_density_nodes``: the block's density node tensor, made at the first read with gradients
+        (one made under no_grad would carry none to the planes)."""
+        assert self._shared_nodes is not None
+        nodes = self._shared_nodes[0]
+        if nodes is None or (torch.is_grad_enabled() and not nodes.requires_grad):
+            nodes = self._shared_nodes[0] = self.density_grid.node_sum()
+        return nodes
+
+    def slot_grid(self, scale: int) -> Optional[SlotGrid]:
+        """What the fused training density (``fused_kernels.slot_density``) reads at ``scale``: inside
+        ``shared_density_nodes`` only (None elsewhere: the planes are read)."""
+        if self._shared_nodes is None:
+            return None
+        return SlotGrid(self.aabb, self.mask_lookup(), self._density_nodes(), self.stride(scale), self.stretched,
+                        self.density_activation == "relu")
 
     @contextlib.contextmanager
     def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:

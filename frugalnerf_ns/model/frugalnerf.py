@@ -286,6 +286,9 @@ class FrugalNeRFModel(Model):
         groups = None if groups is None else groups.reshape(-1)
         # A training step reads density from nodes shared by its scales (outside training the marcher bakes them).
         shared_nodes = self.training and not inference and cfg.training_density_read == "nodes"
+        train_kernels = None
+        if shared_nodes and cfg.training_kernels and origins.device.type == "cpu":
+            train_kernels = warp_kernels(cfg.kernels, CONSOLE.print)
         with self.field.shared_density_nodes(shared_nodes):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
@@ -298,7 +301,8 @@ class FrugalNeRFModel(Model):
                         if groups is not None:
                             shade = objective.color_read(cfg, groups, scale, self.occlusion_active)
                             detached = objective.color_read_detached(cfg, groups, scale, self.occlusion_active)
-                        render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached)
+                        render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached,
+                                              kernels=train_kernels)
                 depth = render.depth[:, 0]
                 if ndc_rays is not None:
                     # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
