@@ -44,7 +44,7 @@ from frugalnerf_ns.model.image_scoring import ImageScorer
 from frugalnerf_ns.scoring.metrics import capped_psnr
 from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
-from frugalnerf_ns.geometry.raymarch import intersect_aabb
+from frugalnerf_ns.geometry.raymarch import exit_distances, intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import StepRender, render_scale, render_scale_inference, scale_suffix
 from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
@@ -110,21 +110,18 @@ class FrugalNeRFModel(Model):
             centre, radius = (None, 0.0) if shell is None else (torch.as_tensor(shell[0]), float(shell[1]))
             if self.config.outer_space_resolution > 0:
                 # The room as geometry beyond the box; the map behind it is at infinity (sky, far away).
-                self.outer_space = OuterSpace(aabb, self.config.outer_space_resolution,
-                                              num_samples=self.config.outer_space_samples,
+                self.outer_space = OuterSpace(aabb, self.config.outer_space_resolution, num_samples=self.config.outer_space_samples,
                                               num_front_samples=self.config.outer_space_front_samples)
                 centre, radius = None, 0.0
             self.far_background = FarBackground(tuple(self.config.far_background_resolution), centre, radius)
-        # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
-        # the module tree and out of every checkpoint.
+        # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, its LPIPS network out of every checkpoint.
         self.scorer = ImageScorer()
         self._register_load_state_dict_pre_hook(drop_metric_network_keys)
         self._register_load_state_dict_pre_hook(self._refuse_a_checkpoint_without_the_far_background)
         self._register_load_state_dict_pre_hook(self._keep_a_checkpoint_without_the_outer_space)
         # Scales rendered outside training; scoring tools set it to 1 (full scale only) to save time.
         self.num_rendered_scales: Optional[int] = None
-        # The geometric adaptation's scale fractions of every training step (recorded by get_metrics_dict at the
-        # batch's step).
+        # The geometric adaptation's scale fractions of every training step (get_metrics_dict, at the batch's step).
         self.scale_history = ScaleFractionHistory()
         # Progress lines of a video render (frames, fps, ETA), set by the ns-render hook in video.py.
         self.frame_progress = None
@@ -286,23 +283,21 @@ class FrugalNeRFModel(Model):
         groups = None if groups is None else groups.reshape(-1)
         # A training step reads density from nodes shared by its scales (outside training the marcher bakes them).
         shared_nodes = self.training and not inference and cfg.training_density_read == "nodes"
-        train_kernels = None
-        if shared_nodes and cfg.training_kernels and origins.device.type == "cpu":
-            train_kernels = warp_kernels(cfg.kernels, CONSOLE.print)
+        fused = inference or (shared_nodes and cfg.training_kernels)  # the kernels' density pass (render_scale: CPU)
+        kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
         with self.field.shared_density_nodes(shared_nodes):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
                             cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
                     if inference:
-                        render = render_scale_inference(*args, kernels=warp_kernels(cfg.kernels, CONSOLE.print))
+                        render = render_scale_inference(*args, kernels=kernels)
                     else:
                         shade = detached = None
                         if groups is not None:
                             shade = objective.color_read(cfg, groups, scale, self.occlusion_active)
                             detached = objective.color_read_detached(cfg, groups, scale, self.occlusion_active)
-                        render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached,
-                                              kernels=train_kernels)
+                        render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached, kernels=kernels)
                 depth = render.depth[:, 0]
                 if ndc_rays is not None:
                     # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).
@@ -319,11 +314,8 @@ class FrugalNeRFModel(Model):
                 outputs[f"accumulation{suffix}"] = render.accumulation.reshape(*shape, 1)
         if self.training:
             # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
-            outer_distortion = box_exit = None
-            if front is not None:
-                outer_distortion = (front.distortion + behind.distortion).mean()  # type: ignore[union-attr]
-                to_centre = (self.field.aabb.mean(dim=0) - world_origins).norm(dim=-1)
-                box_exit = torch.where(segments.hit, segments.t_far, to_centre)
+            outer_distortion = None if front is None else (front.distortion + behind.distortion).mean()  # type: ignore[union-attr]
+            box_exit = None if front is None else exit_distances(segments, self.field.aabb, world_origins)
             outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths, far_depth,
                                          outer_distortion=outer_distortion, box_exit=box_exit)
         elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
