@@ -40,6 +40,10 @@ zero-fill and six matrix products back), the plane reads a cost per sample: on 2
 (32.7 M, the paper's grid ratio at 1/8 resolution). 2^24 (256^3) lies between the two (not measured there).
 frugalnerf-cpu's 256^3 grid is 289x321x193 with the spanning sizes (17.9 M nodes): it reads its planes."""
 
+FUSED_NODES_MAX_ENTRIES = 2**26
+"""``SHARED_NODES_MAX_ENTRIES`` where the fused training density reads the node tensor (``training_kernels``):
+its cost per sample is a fraction of the torch path's, so the fixed pass over the nodes pays on larger grids."""
+
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
 (the CPU presets' ~4 M nodes x 27; the paper preset's grid reads its planes)."""
@@ -233,14 +237,14 @@ class FrugalNeRFField(nn.Module):
                         self.density_activation == "relu")
 
     @contextlib.contextmanager
-    def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:
+    def shared_density_nodes(self, enabled: bool = True, max_entries: int = SHARED_NODES_MAX_ENTRIES) -> Iterator[None]:
         """Within the block, ``density`` reads one ``TensorVMGrid.node_sum`` (made at the first read, with its
         gradient) at every scale (``read_node_sum``): the planes' values and gradients to float rounding, at a
         fixed cost of a few matrix products per block instead of 3 planes x 4 corners x C channels per sample.
         A training step's forward pass is the block: its reads of all scales share the nodes. Grids above
         ``SHARED_NODES_MAX_ENTRIES`` nodes (256^3; the paper preset's 640^3) read the planes: there a pass over
         every node per step costs more than the plane reads at the samples."""
-        shared = enabled and math.prod(self.density_grid.resolution_tuple) <= SHARED_NODES_MAX_ENTRIES
+        shared = enabled and math.prod(self.density_grid.resolution_tuple) <= max_entries
         previous, self._shared_nodes = self._shared_nodes, ([None] if shared else None)
         try:
             yield

@@ -31,7 +31,8 @@ from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
 from frugalnerf_ns.field.outer_space import OuterRender, OuterSpace
-from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.field.radiance_field import (FUSED_NODES_MAX_ENTRIES, SHARED_NODES_MAX_ENTRIES, FrugalNeRFField,
+                                                log_linear_voxel_counts, resolution_for_voxels)
 from frugalnerf_ns.model.geometric_adaptation import (
     ADAPTATION_METRIC,
     ReferenceViews,
@@ -125,11 +126,9 @@ class FrugalNeRFModel(Model):
         self.scale_history = ScaleFractionHistory()
         # Progress lines of a video render (frames, fps, ETA), set by the ns-render hook in video.py.
         self.frame_progress = None
-        # Steps of the run's schedule (the trainer's, known when the training callbacks are made; None without a
-        # trainer): the loss weights decay along it, computed from each batch's step (``schedule``).
+        # Steps of the run's schedule (the trainer's; None without one): the loss weights decay along it (``schedule``).
         self.schedule_length: Optional[int] = None
-        # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
-        # scale map outside it (set_reference_views).
+        # The training views every warp compares with (geometric adaptation, the pseudo-GT scale map; set_reference_views).
         self.reference_views: Optional[ReferenceViews] = None
         # Viewer panel ("Custom Elements"): the lower scales (and the scale map, which needs them) cost most of
         # a frame's render time on a CPU, so there they start off; on a GPU they start on.
@@ -285,7 +284,8 @@ class FrugalNeRFModel(Model):
         shared_nodes = self.training and not inference and cfg.training_density_read == "nodes"
         fused = inference or (shared_nodes and cfg.training_kernels)  # the kernels' density pass (render_scale: CPU)
         kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
-        with self.field.shared_density_nodes(shared_nodes):
+        node_limit = FUSED_NODES_MAX_ENTRIES if kernels and not inference else SHARED_NODES_MAX_ENTRIES
+        with self.field.shared_density_nodes(shared_nodes, node_limit):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
