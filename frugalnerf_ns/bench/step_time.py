@@ -1,6 +1,6 @@
 """Seconds per training step of a trained run, this source tree beside an earlier one, from the same checkpoint.
 
-  frugalnerf-bench step <run>/config.yml [--before DIR] [--training-kernels] [--steps 10] [--rounds 3] [--out outputs/benchmark_step.json]
+  frugalnerf-bench step <run>/config.yml [--before DIR] [--steps 10] [--rounds 3] [--out outputs/benchmark_step.json]
 
 Each measurement is a child process that loads the run's checkpoint (its grid, alpha mask and weights: the
 state at the end of training), seeds torch, runs two warm-up steps and then times ``--steps`` training steps:
@@ -8,10 +8,8 @@ the datamanager's batch, the model's forward, its metrics and losses, backward, 
 (nerfstudio's ``Optimizers`` from the run's config). With ``--before DIR`` (a source tree of an earlier commit,
 e.g. ``git worktree add /tmp/before <rev>``) the same child runs on that tree's package (``PYTHONPATH=DIR``),
 alternating with this tree's, ``--rounds`` times; the table shows medians, the ratio and each tree's peak RSS.
-Both trees draw the same batches and jitter (the same seeds), so they compute the same steps. With
-``--training-kernels`` this tree is timed twice per round, on the torch path and with the fused training density
-(``--pipeline.model.training-kernels``), alternating. Run it alone on the machine: two processes on 2 cores slow
-each other several-fold.
+Both trees draw the same batches and jitter (the same seeds), so they compute the same steps. Run it alone on
+the machine: two processes on 2 cores slow each other several-fold.
 """
 
 from __future__ import annotations
@@ -31,7 +29,7 @@ WORKER_FLAG = "--worker"
 RESULT_PREFIX = "STEP_RESULT "
 
 
-def worker(config: Path, steps: int, warmup: int, training_kernels: Optional[bool] = None) -> Dict[str, object]:
+def worker(config: Path, steps: int, warmup: int) -> Dict[str, object]:
     """Time ``steps`` training steps of the run in ``config`` (runs in the child, on whichever package
     ``PYTHONPATH`` names: only nerfstudio's API and the model's nerfstudio methods are used)."""
     import torch
@@ -43,8 +41,6 @@ def worker(config: Path, steps: int, warmup: int, training_kernels: Optional[boo
     trainer_config, pipeline, _, loaded_step = eval_setup(config, test_mode="val")
     pipeline.train()
     model = pipeline.model
-    if training_kernels is not None:
-        model.config.training_kernels = training_kernels
     optimizers = Optimizers(trainer_config.optimizers, model.get_param_groups())
     torch.manual_seed(0)
 
@@ -71,7 +67,7 @@ def worker(config: Path, steps: int, warmup: int, training_kernels: Optional[boo
     }
 
 
-def run_child(tree: Path, config: Path, steps: int, warmup: int, training_kernels: Optional[bool] = None) -> Dict[str, object]:
+def run_child(tree: Path, config: Path, steps: int, warmup: int) -> Dict[str, object]:
     """One measurement in a child process on ``tree``'s package."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     # This file is loaded by path (the other tree may not have it) under a private name: the package it then
@@ -80,8 +76,6 @@ def run_child(tree: Path, config: Path, steps: int, warmup: int, training_kernel
               f"{str(Path(__file__).resolve())!r}); module = importlib.util.module_from_spec(spec); "
               "spec.loader.exec_module(module); module.main(sys.argv[1:])")
     command = [sys.executable, "-c", loader, WORKER_FLAG, str(config.resolve()), "--steps", str(steps), "--warmup", str(warmup)]
-    if training_kernels is not None:
-        command += ["--training-kernels", str(int(training_kernels))]
     done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
     lines = [line for line in done.stdout.splitlines() if line.startswith(RESULT_PREFIX)]
     if done.returncode != 0 or not lines:
@@ -107,10 +101,8 @@ def main(argv: Optional[List[str]] = None) -> list:
         parser.add_argument("config", type=Path)
         parser.add_argument("--steps", type=int, required=True)
         parser.add_argument("--warmup", type=int, required=True)
-        parser.add_argument("--training-kernels", type=int, choices=(0, 1))
         args = parser.parse_args(argv[1:])
-        kernels = None if args.training_kernels is None else bool(args.training_kernels)
-        print(RESULT_PREFIX + json.dumps(worker(args.config, args.steps, args.warmup, kernels)), flush=True)
+        print(RESULT_PREFIX + json.dumps(worker(args.config, args.steps, args.warmup)), flush=True)
         return []
 
     from frugalnerf_ns.bench.report import markdown_table, write_report
@@ -121,8 +113,6 @@ def main(argv: Optional[List[str]] = None) -> list:
     parser.add_argument("--steps", type=int, default=10, help="timed steps per measurement")
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps first")
     parser.add_argument("--rounds", type=int, default=3, help="measurements per tree (alternating with --before)")
-    parser.add_argument("--training-kernels", action="store_true",
-                        help="time this tree on the torch path and with the fused training density, alternating")
     parser.add_argument("--out", type=Path, default=Path("outputs/benchmark_step.json"))
     args = parser.parse_args(argv)
     if not args.config.is_file():
@@ -130,17 +120,13 @@ def main(argv: Optional[List[str]] = None) -> list:
     if args.before is not None and not (args.before / "frugalnerf_ns" / "__init__.py").is_file():
         sys.exit(f"benchmark_step: error: --before {args.before}: no frugalnerf_ns package there (pass a source tree)")
     this_tree = Path(__file__).resolve().parents[2]
-    trees = [("before", args.before, None)] if args.before is not None else []
-    if args.training_kernels:
-        trees += [("now, torch path", this_tree, False), ("now, fused training density", this_tree, True)]
-    else:
-        trees.append(("now", this_tree, None))
-    results: Dict[str, List[Dict[str, object]]] = {name: [] for name, _, _ in trees}
+    trees = ([("before", args.before)] if args.before is not None else []) + [("now", this_tree)]
+    results: Dict[str, List[Dict[str, object]]] = {name: [] for name, _ in trees}
     for _ in range(args.rounds):
-        for name, tree, kernels in trees:
-            results[name].append(run_child(tree, args.config, args.steps, args.warmup, kernels))
+        for name, tree in trees:
+            results[name].append(run_child(tree, args.config, args.steps, args.warmup))
     rows = []
-    for name, tree, _ in trees:
+    for name, tree in trees:
         medians = [statistics.median(r["seconds"]) for r in results[name]]  # type: ignore[arg-type]
         rows.append({
             "tree": name, "commit": git_commit(tree), "path": str(tree),

@@ -1,7 +1,7 @@
 """The fused kernels' source (NVIDIA Warp), apart from the code that loads and launches them
 (``fused_kernels``): ``density_march`` (the inference marcher's density pass, one thread per ray),
-``outer_composite`` (the space beyond an object's box), ``vm_features`` (appearance features read from
-channels-last planes and lines) and ``slot_density`` with its backward (a training step's density at its slots). Each mirrors a torch function that stays the reference it is tested against."""
+``outer_composite`` (the space beyond an object's box) and ``vm_features`` (appearance features read from
+channels-last planes and lines). Each mirrors a torch function that stays the reference it is tested against."""
 
 from __future__ import annotations
 
@@ -255,93 +255,5 @@ def define_kernels(wp) -> dict:
         plane_line_product(plane1, width1, height1, line1, c[0], c[2], c[1], out, i, plane0.shape[1])
         plane_line_product(plane2, width2, height2, line2, c[1], c[2], c[0], out, i, plane0.shape[1] + plane1.shape[1])
 
-    @wp.func
-    def node_corners(p: wp.vec3, box_min: wp.vec3, box_max: wp.vec3, per_unit: wp.vec3, lengths: wp.vec3i,
-                     element_step: wp.vec3i):
-        # tensorial.read_node_sum's corners: the normalised point ([-1, 1] over the box), its index in the strided
-        # view (clamped, border), the lower corner's flat index in the full node tensor, the steps to the upper
-        # corners (0 where an axis keeps one entry) and the weights toward them.
-        base = int(0)
-        steps = wp.vec3i(0, 0, 0)
-        w = wp.vec3(0.0, 0.0, 0.0)
-        for k in range(3):
-            coord = (p[k] - box_min[k]) / (box_max[k] - box_min[k]) * 2.0 - 1.0
-            f = wp.min(wp.max((coord + 1.0) * per_unit[k], 0.0), float(lengths[k] - 1))
-            low = wp.min(wp.floor(f), float(wp.max(lengths[k] - 2, 0)))
-            w[k] = f - low
-            lo = int(low)
-            base += lo * element_step[k]
-            steps[k] = (wp.min(lo + 1, lengths[k] - 1) - lo) * element_step[k]
-        return base, steps, w
-
-    @wp.kernel
-    def slot_density(
-        origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3), t: wp.array2d(dtype=wp.float32),
-        valid: wp.array2d(dtype=wp.uint8), box_min: wp.vec3, box_max: wp.vec3,
-        mask: wp.array(dtype=wp.uint8), has_mask: int, mask_min: wp.vec3, mask_max: wp.vec3,
-        mask_res: wp.vec3i, mask_strides: wp.vec3i,
-        nodes: wp.array(dtype=wp.float32), per_unit: wp.vec3, lengths: wp.vec3i, element_step: wp.vec3i, relu: int,
-        density: wp.array2d(dtype=wp.float32), slope: wp.array2d(dtype=wp.float32),
-    ):
-        # A training step's density at its marched slots (rendering.render_scale: the segment, the box and alpha
-        # mask test, read_node_sum, the activation), and the activation's slope for the backward pass; 0 at a slot
-        # outside (which the torch path never reads).
-        r, i = wp.tid()
-        density[r, i] = 0.0
-        slope[r, i] = 0.0
-        if valid[r, i] == wp.uint8(0):
-            return
-        p = origins[r] + directions[r] * t[r, i]
-        if not occupied(p, box_min, box_max, mask, has_mask, mask_min, mask_max, mask_res, mask_strides):
-            return
-        base, steps, w = node_corners(p, box_min, box_max, per_unit, lengths, element_step)
-        c00 = nodes[base] * (1.0 - w[0]) + nodes[base + steps[0]] * w[0]
-        c01 = nodes[base + steps[1]] * (1.0 - w[0]) + nodes[base + steps[1] + steps[0]] * w[0]
-        c10 = nodes[base + steps[2]] * (1.0 - w[0]) + nodes[base + steps[2] + steps[0]] * w[0]
-        c11 = nodes[base + steps[2] + steps[1]] * (1.0 - w[0]) + nodes[base + steps[2] + steps[1] + steps[0]] * w[0]
-        raw = (c00 * (1.0 - w[1]) + c01 * w[1]) * (1.0 - w[2]) + (c10 * (1.0 - w[1]) + c11 * w[1]) * w[2]
-        if relu != 0:
-            if raw > 0.0:
-                density[r, i] = raw
-                slope[r, i] = 1.0
-            return
-        x = raw - 10.0  # TensoRF's shifted softplus, as torch's (linear above 20); its slope is sigmoid(x)
-        if x > 20.0:
-            density[r, i] = x
-            slope[r, i] = 1.0
-            return
-        y = wp.exp(x)
-        if y < 0.01:  # log(1 + y) by its series (no log1p in Warp)
-            density[r, i] = y - 0.5 * y * y + y * y * y / 3.0
-        else:
-            density[r, i] = wp.log(1.0 + y)
-        slope[r, i] = y / (1.0 + y)
-
-    @wp.kernel
-    def slot_density_backward(
-        origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3), t: wp.array2d(dtype=wp.float32),
-        grad: wp.array2d(dtype=wp.float32), slope: wp.array2d(dtype=wp.float32), box_min: wp.vec3, box_max: wp.vec3,
-        per_unit: wp.vec3, lengths: wp.vec3i, element_step: wp.vec3i, grad_nodes: wp.array(dtype=wp.float32),
-    ):
-        # slot_density's gradient to the nodes: each slot's 8 corner weights times its gradient through the
-        # activation, added into the node tensor's gradient (slope 0: outside, or ReLU's flat side: nothing).
-        r, i = wp.tid()
-        g = grad[r, i] * slope[r, i]
-        if g == 0.0:
-            return
-        p = origins[r] + directions[r] * t[r, i]
-        base, steps, w = node_corners(p, box_min, box_max, per_unit, lengths, element_step)
-        ux = 1.0 - w[0]
-        uy = 1.0 - w[1]
-        uz = 1.0 - w[2]
-        wp.atomic_add(grad_nodes, base, ux * uy * uz * g)
-        wp.atomic_add(grad_nodes, base + steps[0], w[0] * uy * uz * g)
-        wp.atomic_add(grad_nodes, base + steps[1], ux * w[1] * uz * g)
-        wp.atomic_add(grad_nodes, base + steps[1] + steps[0], w[0] * w[1] * uz * g)
-        wp.atomic_add(grad_nodes, base + steps[2], ux * uy * w[2] * g)
-        wp.atomic_add(grad_nodes, base + steps[2] + steps[0], w[0] * uy * w[2] * g)
-        wp.atomic_add(grad_nodes, base + steps[2] + steps[1], ux * w[1] * w[2] * g)
-        wp.atomic_add(grad_nodes, base + steps[2] + steps[1] + steps[0], w[0] * w[1] * w[2] * g)
-
     return {"module": density_march.module, "density_march": density_march, "outer_composite": outer_composite,
-            "vm_features": vm_features, "slot_density": slot_density, "slot_density_backward": slot_density_backward}
+            "vm_features": vm_features}

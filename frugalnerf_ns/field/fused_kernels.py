@@ -19,7 +19,6 @@ colour MLP uses all of them."""
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import sys
 import threading
@@ -252,93 +251,3 @@ def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Tensor:
     if n:
         wp.launch(kernel, dim=n, device="cpu", inputs=[wp.from_torch(coords, dtype=wp.vec3), *shared, wp.from_torch(out)])
     return out
-
-
-class SlotGrid(NamedTuple):
-    """What ``slot_density`` reads besides the rays: the field's box, its alpha mask (``mask_lookup``; None: no
-    mask), the density node tensor [Z, Y, X] (``TensorVMGrid.node_sum``), the stride of the scale read and whether
-    the lower scales stretch their views (``read_node_sum``) and the activation."""
-
-    aabb: Tensor
-    mask: Optional[Tuple[Tensor, Tensor, Tensor, Tensor]]
-    nodes: Tensor
-    stride: int
-    stretched: bool
-    relu: bool
-
-
-def _node_layout(nodes: Tensor, stride: int, stretched: bool, wp) -> dict:
-    """``read_node_sum``'s index rule for a strided view of ``nodes`` as the kernels' arguments."""
-    from frugalnerf_ns.field.tensorial import strided_length
-
-    res = (nodes.shape[2], nodes.shape[1], nodes.shape[0])  # x, y, z
-    lengths = [strided_length(r, stride) for r in res]
-    # In float32 as torch computes it (the per-unit factors are a float32 tensor there).
-    per_unit = torch.tensor([0.5 * (n - 1) if stretched else 0.5 * (r - 1) / stride for r, n in zip(res, lengths)],
-                            dtype=torch.float32)
-    return {"per_unit": wp.vec3(*[float(v) for v in per_unit]), "lengths": wp.vec3i(*lengths),
-            "element_step": wp.vec3i(stride, stride * res[0], stride * res[0] * res[1])}
-
-
-class _SlotDensity(torch.autograd.Function):
-    """``slot_density`` with its backward (``slot_density_backward``): the gradient reaches the node tensor only
-    (the torch path's reads give the positions none either)."""
-
-    @staticmethod
-    def forward(ctx, nodes: Tensor, fused: WarpKernels, grid: SlotGrid, origins: Tensor, directions: Tensor,  # type: ignore[override]
-                t: Tensor, valid: Tensor) -> Tensor:
-        wp = fused.wp
-        rays, slots = t.shape
-        density = torch.empty(rays, slots, dtype=torch.float32)
-        slope = torch.empty(rays, slots, dtype=torch.float32)
-        o, d = origins.detach().to(torch.float32).contiguous(), directions.detach().to(torch.float32).contiguous()
-        t32 = t.detach().to(torch.float32).contiguous()
-        flat = nodes.detach().reshape(-1).contiguous()
-        layout = _node_layout(nodes, grid.stride, grid.stretched, wp)
-        box_min, box_max = (wp.vec3(*[float(v) for v in x]) for x in (grid.aabb[0], grid.aabb[1]))
-        if grid.mask is None:
-            mask, has_mask = torch.zeros(1, dtype=torch.uint8), 0
-            mask_min = mask_max = wp.vec3(0.0, 0.0, 0.0)
-            res = strides = wp.vec3i(1, 1, 1)
-        else:
-            padded, mask_aabb, shape, pad_strides = grid.mask
-            mask, has_mask = _bytes(padded), 1
-            mask_min, mask_max = (wp.vec3(*[float(v) for v in x]) for x in (mask_aabb[0], mask_aabb[1]))
-            res, strides = wp.vec3i(*[int(v) for v in shape]), wp.vec3i(*[int(v) for v in pad_strides])
-        if rays and slots:
-            kernel = fused.kernels["slot_density"]
-            inputs = dict(
-                origins=wp.from_torch(o, dtype=wp.vec3), directions=wp.from_torch(d, dtype=wp.vec3), t=wp.from_torch(t32),
-                valid=wp.from_torch(_bytes(valid)), box_min=box_min, box_max=box_max, mask=wp.from_torch(mask),
-                has_mask=has_mask, mask_min=mask_min, mask_max=mask_max, mask_res=res, mask_strides=strides,
-                nodes=wp.from_torch(flat), relu=int(grid.relu), density=wp.from_torch(density),
-                slope=wp.from_torch(slope), **layout,
-            )
-            wp.launch(kernel, dim=(rays, slots), inputs=_ordered(kernel, inputs, {}), device="cpu")
-        ctx.save_for_backward(o, d, t32, slope)
-        ctx.fused, ctx.grid, ctx.layout, ctx.node_shape = fused, grid, layout, nodes.shape
-        ctx.box = (box_min, box_max)
-        return density
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):  # type: ignore[override]
-        o, d, t32, slope = ctx.saved_tensors
-        wp = ctx.fused.wp
-        grad_nodes = torch.zeros(math.prod(ctx.node_shape), dtype=torch.float32)
-        rays, slots = t32.shape
-        if rays and slots:
-            kernel = ctx.fused.kernels["slot_density_backward"]
-            inputs = dict(
-                origins=wp.from_torch(o, dtype=wp.vec3), directions=wp.from_torch(d, dtype=wp.vec3), t=wp.from_torch(t32),
-                grad=wp.from_torch(grad.to(torch.float32).contiguous()), slope=wp.from_torch(slope),
-                box_min=ctx.box[0], box_max=ctx.box[1], grad_nodes=wp.from_torch(grad_nodes), **ctx.layout,
-            )
-            wp.launch(kernel, dim=(rays, slots), inputs=_ordered(kernel, inputs, {}), device="cpu")
-        return grad_nodes.view(ctx.node_shape), None, None, None, None, None, None
-
-
-def slot_density(fused: WarpKernels, grid: SlotGrid, origins: Tensor, directions: Tensor, t: Tensor, valid: Tensor) -> Tensor:
-    """A training step's density at every marched slot [rays, slots] (0 outside the segment, the box or the alpha
-    mask), with its gradient to ``grid.nodes``: ``rendering.render_scale``'s density pass in one kernel (float32,
-    CPU)."""
-    return _SlotDensity.apply(grid.nodes, fused, grid, origins, directions, t, valid)

@@ -17,7 +17,6 @@ from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
 from frugalnerf_ns.field.density import BakedDensity, DensityActivation, activate_density
-from frugalnerf_ns.field.fused_kernels import SlotGrid
 from frugalnerf_ns.field.tensorial import (
     OptimizerState,
     TensorVMGrid,
@@ -39,10 +38,6 @@ zero-fill and six matrix products back), the plane reads a cost per sample: on 2
 1.26x faster on a 177x193x113 grid (3.9 M nodes) and the planes 1.02-1.24x faster (four pairs) on 353x385x241
 (32.7 M, the paper's grid ratio at 1/8 resolution). 2^24 (256^3) lies between the two (not measured there).
 frugalnerf-cpu's 256^3 grid is 289x321x193 with the spanning sizes (17.9 M nodes): it reads its planes."""
-
-FUSED_NODES_MAX_ENTRIES = 2**26
-"""``SHARED_NODES_MAX_ENTRIES`` where the fused training density reads the node tensor (``training_kernels``):
-its cost per sample is a fraction of the torch path's, so the fixed pass over the nodes pays on larger grids."""
 
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
@@ -213,38 +208,25 @@ class FrugalNeRFField(nn.Module):
     def density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
         coords = self.normalize(positions)
         if self._shared_nodes is not None and not coords.requires_grad:  # the node reads give no position gradient
-            raw = read_node_sum(self._density_nodes(), coords, self.stride(scale), self.stretched)
+            nodes = self._shared_nodes[0]
+            # Made at the first read with gradients (one made under no_grad would carry none to the planes).
+            if nodes is None or (torch.is_grad_enabled() and not nodes.requires_grad):
+                nodes = self._shared_nodes[0] = self.density_grid.node_sum()
+            raw = read_node_sum(nodes, coords, self.stride(scale), self.stretched)
         else:
             products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
             raw = sum(p.sum(dim=-1) for p in products)
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
 
-    def _density_nodes(self) -> Tensor:
-        """Inside ``shared_density_nodes``: the block's density node tensor, made at the first read with gradients
-        (one made under no_grad would carry none to the planes)."""
-        assert self._shared_nodes is not None
-        nodes = self._shared_nodes[0]
-        if nodes is None or (torch.is_grad_enabled() and not nodes.requires_grad):
-            nodes = self._shared_nodes[0] = self.density_grid.node_sum()
-        return nodes
-
-    def slot_grid(self, scale: int) -> Optional[SlotGrid]:
-        """What the fused training density (``fused_kernels.slot_density``) reads at ``scale``: inside
-        ``shared_density_nodes`` only (None elsewhere: the planes are read)."""
-        if self._shared_nodes is None:
-            return None
-        return SlotGrid(self.aabb, self.mask_lookup(), self._density_nodes(), self.stride(scale), self.stretched,
-                        self.density_activation == "relu")
-
     @contextlib.contextmanager
-    def shared_density_nodes(self, enabled: bool = True, max_entries: int = SHARED_NODES_MAX_ENTRIES) -> Iterator[None]:
+    def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:
         """Within the block, ``density`` reads one ``TensorVMGrid.node_sum`` (made at the first read, with its
         gradient) at every scale (``read_node_sum``): the planes' values and gradients to float rounding, at a
         fixed cost of a few matrix products per block instead of 3 planes x 4 corners x C channels per sample.
         A training step's forward pass is the block: its reads of all scales share the nodes. Grids above
         ``SHARED_NODES_MAX_ENTRIES`` nodes (256^3; the paper preset's 640^3) read the planes: there a pass over
         every node per step costs more than the plane reads at the samples."""
-        shared = enabled and math.prod(self.density_grid.resolution_tuple) <= max_entries
+        shared = enabled and math.prod(self.density_grid.resolution_tuple) <= SHARED_NODES_MAX_ENTRIES
         previous, self._shared_nodes = self._shared_nodes, ([None] if shared else None)
         try:
             yield

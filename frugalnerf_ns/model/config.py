@@ -81,10 +81,6 @@ class FrugalNeRFSettings(ModelConfig):
     """Fused kernels (NVIDIA Warp, compiled at first use) for rendering without gradients on the CPU: the density
     march, the appearance reads of a grid too large to bake and the space beyond the box. torch: the reference
     path. auto: Warp where it imports and compiles, else torch with one line. Training is unaffected."""
-    training_kernels: bool = False
-    """Experimental: a training step's density pass on the CPU as one fused kernel with its backward (Warp, as
-    ``kernels`` allows: the segment, box and alpha-mask test, the read of the density node tensor and the
-    activation; ``fused_kernels.slot_density``), instead of the torch path's passes."""
     mlp_hidden_dim: int = 128
     """Width of the colour MLP."""
     feature_pe: int = 0

@@ -31,8 +31,7 @@ from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
 from frugalnerf_ns.field.outer_space import OuterRender, OuterSpace
-from frugalnerf_ns.field.radiance_field import (FUSED_NODES_MAX_ENTRIES, SHARED_NODES_MAX_ENTRIES, FrugalNeRFField,
-                                                log_linear_voxel_counts, resolution_for_voxels)
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
     ADAPTATION_METRIC,
     ReferenceViews,
@@ -111,11 +110,13 @@ class FrugalNeRFModel(Model):
             centre, radius = (None, 0.0) if shell is None else (torch.as_tensor(shell[0]), float(shell[1]))
             if self.config.outer_space_resolution > 0:
                 # The room as geometry beyond the box; the map behind it is at infinity (sky, far away).
-                self.outer_space = OuterSpace(aabb, self.config.outer_space_resolution, num_samples=self.config.outer_space_samples,
+                self.outer_space = OuterSpace(aabb, self.config.outer_space_resolution,
+                                              num_samples=self.config.outer_space_samples,
                                               num_front_samples=self.config.outer_space_front_samples)
                 centre, radius = None, 0.0
             self.far_background = FarBackground(tuple(self.config.far_background_resolution), centre, radius)
-        # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, its LPIPS network out of every checkpoint.
+        # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
+        # the module tree and out of every checkpoint.
         self.scorer = ImageScorer()
         self._register_load_state_dict_pre_hook(drop_metric_network_keys)
         self._register_load_state_dict_pre_hook(self._refuse_a_checkpoint_without_the_far_background)
@@ -126,9 +127,11 @@ class FrugalNeRFModel(Model):
         self.scale_history = ScaleFractionHistory()
         # Progress lines of a video render (frames, fps, ETA), set by the ns-render hook in video.py.
         self.frame_progress = None
-        # Steps of the run's schedule (the trainer's; None without one): the loss weights decay along it (``schedule``).
+        # Steps of the run's schedule (the trainer's, known when the training callbacks are made; None without a
+        # trainer): the loss weights decay along it, computed from each batch's step (``schedule``).
         self.schedule_length: Optional[int] = None
-        # The training views every warp compares with (geometric adaptation, the pseudo-GT scale map; set_reference_views).
+        # The training views every warp compares with: geometric adaptation in training and the pseudo-GT
+        # scale map outside it (set_reference_views).
         self.reference_views: Optional[ReferenceViews] = None
         # Viewer panel ("Custom Elements"): the lower scales (and the scale map, which needs them) cost most of
         # a frame's render time on a CPU, so there they start off; on a GPU they start on.
@@ -282,22 +285,19 @@ class FrugalNeRFModel(Model):
         groups = None if groups is None else groups.reshape(-1)
         # A training step reads density from nodes shared by its scales (outside training the marcher bakes them).
         shared_nodes = self.training and not inference and cfg.training_density_read == "nodes"
-        fused = inference or (shared_nodes and cfg.training_kernels)  # the kernels' density pass (render_scale: CPU)
-        kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
-        node_limit = FUSED_NODES_MAX_ENTRIES if kernels and not inference else SHARED_NODES_MAX_ENTRIES
-        with self.field.shared_density_nodes(shared_nodes, node_limit):
+        with self.field.shared_density_nodes(shared_nodes):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
                             cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
                     if inference:
-                        render = render_scale_inference(*args, kernels=kernels)
+                        render = render_scale_inference(*args, kernels=warp_kernels(cfg.kernels, CONSOLE.print))
                     else:
                         shade = detached = None
                         if groups is not None:
                             shade = objective.color_read(cfg, groups, scale, self.occlusion_active)
                             detached = objective.color_read_detached(cfg, groups, scale, self.occlusion_active)
-                        render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached, kernels=kernels)
+                        render = render_scale(*args, jitter=self.training, shade_rays=shade, detached_rays=detached)
                 depth = render.depth[:, 0]
                 if ndc_rays is not None:
                     # Depth is reported as metric distance along the world ray (viewer, warping, sparse depth).

@@ -83,32 +83,22 @@ def render_scale(
     jitter: bool,
     shade_rays: Optional[Bool[Tensor, " rays"]] = None,
     detached_rays: Optional[Bool[Tensor, " rays"]] = None,
-    kernels: Optional[fused_kernels.WarpKernels] = None,
 ) -> ScaleRender:
     """March one scale: fixed-step samples in the box, density where occupied, colour where it matters.
 
     ``shade_rays`` (None: all) limits the colour to the rays whose colour is read; the others' ``rgb`` is the
     background's share alone and their ``colors`` are zero. ``detached_rays`` (None: none) are shaded without
-    gradient (their colour is read, but only detached): no backward pass through the colour MLP for them.
-    ``kernels`` (None: the torch path): the density pass in one fused kernel with its backward
-    (``fused_kernels.slot_density``) where the field reads one node tensor (``shared_density_nodes``), float32 on
-    the CPU."""
+    gradient (their colour is read, but only detached): no backward pass through the colour MLP for them."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
     # Slots past every ray's exit would hold zero weight (about half of them in NDC scenes, where the box's
     # diagonal is much longer than a ray's path through it): they are not marched.
     t, valid = march_steps(segments, step, reachable_slots(segments, step, num_samples), jitter=jitter)
     positions = origins[:, None, :] + directions[:, None, :] * t[..., None]
-    grid = None
-    if kernels is not None and t.dtype == torch.float32 and t.device.type == "cpu":
-        grid = field_.slot_grid(scale)
-    if grid is not None:
-        densities = fused_kernels.slot_density(kernels, grid, origins, directions, t, valid)
-    else:
-        valid = valid & field_.inside(positions)
-        densities = torch.zeros_like(t)
-        if valid.any():
-            densities[valid] = field_.density(positions[valid], scale)
+    valid = valid & field_.inside(positions)
+    densities = torch.zeros_like(t)
+    if valid.any():
+        densities[valid] = field_.density(positions[valid], scale)
     comp = composite_weights(densities, t, step, distance_scale, segments.t_near, segments.t_far)
     colors = torch.zeros(*t.shape, 3, device=t.device, dtype=t.dtype)
     shade = comp.weights > weight_threshold
