@@ -21,6 +21,14 @@ except ImportError:
 needs_warp = pytest.mark.skipif(wp is None, reason="Warp is not installed")
 
 
+@pytest.fixture(autouse=True)
+def float32_colour(monkeypatch, request):
+    """The kernels' arithmetic against torch's, in float32: the bfloat16 colour MLP of CPUs that have it (the
+    default with the kernels there) is tested on its own (``test_the_bfloat16_colour_...``)."""
+    if "bfloat16" not in request.node.name:
+        monkeypatch.setattr("frugalnerf_ns.field.radiance_field.native_bfloat16", lambda: False)
+
+
 def render(field, scale, kernels, origins=None, directions=None, termination=1e-4, faint_budget=FAINT_BUDGET):
     if origins is None:
         origins, directions = rays(600, seed=3)
@@ -172,3 +180,32 @@ def test_the_fused_feature_read_gives_the_planes_colours(scale, stretched, monke
 
 
 AABB_FEATURES = torch.tensor([[-1.0, -0.8, -1.2], [1.0, 0.8, 1.2]])
+
+
+@needs_warp
+def test_the_bfloat16_colour_mlp_stays_within_a_255th_of_float32(monkeypatch):
+    from frugalnerf_ns.field.color_mlp import ColorMLP
+    from tests.helpers import tiny_model
+
+    torch.manual_seed(0)
+    mlp = ColorMLP(27, hidden_dim=128, implementation="torch")
+    features = torch.randn(20000, 27) * 2.0
+    full, low = mlp(features), mlp.forward_bfloat16(features)
+    assert low.dtype == torch.float32 and low.shape == full.shape
+    difference = float((low - full).abs().max())
+    assert 0 < difference < 1 / 255  # rounded, not the same numbers, but below one step of an 8-bit image
+    # The model's renders with the kernels and a bfloat16 MLP (forced here: the default where the CPU has it)
+    # against the float32 torch path.
+    monkeypatch.setattr("frugalnerf_ns.field.radiance_field.native_bfloat16", lambda: True)
+    model = tiny_model()
+    model.eval()
+    with torch.no_grad():
+        for line in model.field.density_grid.lines:
+            line.add_(0.4)
+        for tensor in [*model.field.appearance_grid.planes, *model.field.appearance_grid.lines]:
+            tensor.normal_(0.0, 1.0)
+    origins, directions = rays(400, seed=6)
+    ours, reference = render(model.field, 0, wp, origins, directions), render(model.field, 0, None, origins, directions)
+    largest = float((ours.rgb - reference.rgb).abs().max())
+    psnr = -10 * torch.log10(((ours.rgb - reference.rgb) ** 2).mean())
+    assert 0 < largest < 1 / 255 and float(psnr) > 50, (largest, float(psnr))

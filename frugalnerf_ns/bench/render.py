@@ -8,8 +8,9 @@ Rows (seconds per frame or per test view, same machine, same model, same image s
 - test view, inference marcher (now): ``render_scale_inference``, blocks of slots, rays dropped once they
   leave the box or turn opaque; with the PSNR and largest pixel difference between the two renders;
 - test view and spiral frame, inference marcher on its torch path and with the fused kernels
-  (``--pipeline.model.kernels torch`` / ``warp``), alternating over ``--repeats`` rounds (medians), with the
-  PSNR and largest pixel difference between them (when Warp compiles here);
+  (``--pipeline.model.kernels torch`` / ``warp``; where the CPU multiplies bfloat16 also the kernels with the
+  float32 colour MLP), alternating over ``--repeats`` rounds (medians), with the PSNR and largest pixel
+  difference between them (when Warp compiles here);
 - with ``--before DIR`` (a source tree of an earlier commit, e.g. ``git worktree add /tmp/before <rev>``): test
   view, that tree's ``render_scale_inference`` run on this process's model (it must call only field methods
   this tree still has), timed alternately with this tree's over ``--repeats`` rounds (medians);
@@ -113,17 +114,24 @@ def main(argv=None) -> list:
     def compare_kernels() -> list:
         """The inference marcher on its torch path and with the fused kernels, alternating, median seconds per test
         view and per spiral frame."""
-        chosen, times = model.config.kernels, {}
+        from frugalnerf_ns.field import radiance_field
+
+        chosen, native, times = model.config.kernels, radiance_field.native_bfloat16, {}
+        # Where the CPU multiplies bfloat16, "warp" (the default) shades in bfloat16: its float32 colour beside it.
+        paths = ("torch", "warp float32 colour", "warp") if native() else ("torch", "warp")
         try:
             for _ in range(args.repeats):
-                for kernels in ("torch", "warp"):
-                    model.config.kernels = kernels
-                    times.setdefault(("view", kernels), []).append(timed(lambda: test_views(True, kernels)) / len(views))
-                    times.setdefault(("frame", kernels), []).append(timed(lambda: render_path(ours)) / args.frames)
+                for path in paths:
+                    model.config.kernels = path.split()[0]
+                    radiance_field.native_bfloat16 = native if path == "warp" else (lambda: False)
+                    times.setdefault(("view", path), []).append(timed(lambda: test_views(True, path)) / len(views))
+                    times.setdefault(("frame", path), []).append(timed(lambda: render_path(ours)) / args.frames)
         finally:
-            model.config.kernels = chosen
-        return [(f"{what}, inference marcher, {kernels} path, median of {args.repeats}", statistics.median(times[(key, kernels)]))
-                for key, what in (("view", "test view"), ("frame", "spiral frame")) for kernels in ("torch", "warp")]
+            model.config.kernels, radiance_field.native_bfloat16 = chosen, native
+        named = {"torch": "torch path", "warp float32 colour": "fused kernels, float32 colour MLP",
+                 "warp": "fused kernels" + (", bfloat16 colour MLP (the default here)" if native() else "")}
+        return [(f"{what}, inference marcher, {named[path]}, median of {args.repeats}", statistics.median(times[(key, path)]))
+                for key, what in (("view", "test view"), ("frame", "spiral frame")) for path in paths]
 
     model.num_rendered_scales = None  # the default outside the viewer: the full scale only
     ours = scene_video_cameras(datamanager, start, args.frames)
@@ -142,6 +150,8 @@ def main(argv=None) -> list:
     if kernel_rows:
         agreement["psnr_warp_vs_torch"] = psnr_between(renders["warp"], renders["torch"])
         agreement["max_pixel_difference_warp_vs_torch"] = largest_difference(renders["warp"], renders["torch"])
+        if "warp float32 colour" in renders:
+            agreement["psnr_warp_float32_vs_torch"] = psnr_between(renders["warp float32 colour"], renders["torch"])
     if before_marcher is not None:
         rows += compare_before()
         agreement["psnr_inference_vs_before"] = psnr_between(renders["now"], renders["before"])
@@ -157,6 +167,8 @@ def main(argv=None) -> list:
     if kernel_rows:
         table += (f"\nfused kernels vs torch path on {len(views)} test views: PSNR {agreement['psnr_warp_vs_torch']:.1f} dB, "
                   f"largest pixel difference {agreement['max_pixel_difference_warp_vs_torch']:.2e}")
+        if "psnr_warp_float32_vs_torch" in agreement:
+            table += f" (with the float32 colour MLP: PSNR {agreement['psnr_warp_float32_vs_torch']:.1f} dB)"
     if before_marcher is not None:
         table += (f"\ninference marcher now vs {args.before}: PSNR {agreement['psnr_inference_vs_before']:.1f} dB, "
                   f"largest pixel difference {largest_difference(renders['now'], renders['before']):.2e}")

