@@ -54,8 +54,8 @@ _NATIVE_BFLOAT16: dict = {}
 
 def native_bfloat16() -> bool:
     """Whether this CPU multiplies bfloat16 matrices in hardware (AVX512-BF16 or AMX on x86 Linux): there a colour
-    MLP's hidden layers run ~1.9x faster in bfloat16 (``ColorMLP.forward_bfloat16``); elsewhere they would be
-    slower than float32. Read once from /proc/cpuinfo (False where it cannot be read)."""
+    MLP's hidden layers ran ~1.9x faster in bfloat16 (``ColorMLP.forward_bfloat16``; AVX512-BF16, 2 cores);
+    elsewhere float32 is kept. Read once from /proc/cpuinfo (False where it cannot be read)."""
     if "value" not in _NATIVE_BFLOAT16:
         try:
             with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
