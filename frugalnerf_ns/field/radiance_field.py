@@ -308,10 +308,11 @@ class FrugalNeRFField(nn.Module):
         hardware the colour MLP's hidden layers run in bfloat16 (``ColorMLP.forward_bfloat16``: a colour within
         ~2e-3; ``--pipeline.model.kernels torch`` keeps float32)."""
         baked = self.baked_features(scale)
+        fused = kernels is not None and positions.device.type == "cpu"
         mlp = self.color_mlp
-        if kernels is not None and positions.device.type == "cpu" and mlp.implementation == "torch" and native_bfloat16():
+        if fused and mlp.implementation == "torch" and native_bfloat16():
             mlp = mlp.forward_bfloat16  # type: ignore[assignment]
-        if baked is None and kernels is not None and positions.device.type == "cpu":
+        if baked is None and fused:
             from frugalnerf_ns.field import fused_kernels
 
             stride = self.stride(scale)

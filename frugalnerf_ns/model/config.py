@@ -230,8 +230,8 @@ class FrugalNeRFSettings(ModelConfig):
     setting: the triangulated points stay closer to the scene than the rendered depth all through a short run, so a
     pull that fades with the regularisers may let go of them while the full scale still moves."""
     room_geo_depth: Literal["box", "contracted"] = "box"
-    """Experimental, not adopted: where the scene is an object in a metric box with the room beyond it (a far background with the outer grids:
-    photos circling their subject), the depth L_geo (Eq. 5, 9) compares: "box", the box's own render (the paper's
+    """Experimental, not adopted: where the scene is an object in a metric box with the room beyond it (a far
+    background with the outer grids: photos circling their subject), the depth L_geo (Eq. 5, 9) compares: "box", the box's own render (the paper's
     rendered depth; a ray whose content lies beyond the box has an arbitrary normalised depth there, and agreeing
     scales ask for a surface in the box); "contracted", the whole ray's depth (the one its warp places points at),
     unchanged up to the ray's exit from the box t_f and beyond it t_f (2 - t_f / d), mip-NeRF 360's contraction
