@@ -209,3 +209,111 @@ def test_the_bfloat16_colour_mlp_stays_within_a_255th_of_float32(monkeypatch):
     largest = float((ours.rgb - reference.rgb).abs().max())
     psnr = -10 * torch.log10(((ours.rgb - reference.rgb) ** 2).mean())
     assert 0 < largest < 1 / 255 and float(psnr) > 50, (largest, float(psnr))
+
+
+def test_jobs_on_every_core_run_in_the_pool_and_come_back_in_order(monkeypatch):
+    import threading
+
+    jobs = [(lambda k=k: (k, threading.current_thread().name)) for k in range(7)]
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    results = fused_kernels.on_every_core(jobs)
+    assert [k for k, _ in results] == list(range(7))
+    assert all(name.startswith("frugalnerf-fused") for _, name in results)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)  # one core: in this thread, no pool
+    assert {name for _, name in fused_kernels.on_every_core(jobs)} == {threading.current_thread().name}
+    with pytest.raises(ZeroDivisionError):  # a job's error reaches the caller
+        fused_kernels.on_every_core([lambda: 1, lambda: 1 / 0])
+
+
+@needs_warp
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_march_in_blocks_on_every_core_and_colours_in_parts_give_one_launchs_pixels(threads, monkeypatch):
+    from frugalnerf_ns.model import rendering
+
+    field = opaque_field(mask=True)
+    origins, directions = rays(3000, seed=11)
+    whole = render(field, 0, wp, origins, directions)
+    calls = []
+    march = fused_kernels.density_march
+    monkeypatch.setattr(fused_kernels, "density_march", lambda *a: calls.append(a[4].shape[0]) or march(*a))
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    monkeypatch.setattr(fused_kernels, "MARCH_BLOCK_RAYS", 256)
+    monkeypatch.setattr(fused_kernels, "SPLIT_MIN_ROWS", 100)
+    monkeypatch.setattr(rendering, "SHADE_ROWS", 500)
+    parts = render(field, 0, wp, origins, directions)
+    hits = int(intersect_aabb(origins, directions, field.aabb, 0.0).hit.sum())
+    assert calls == [256] * (hits // 256) + ([hits % 256] if hits % 256 else []) and len(calls) > 4
+    assert torch.equal(parts.accumulation, whole.accumulation) and torch.equal(parts.depth, whole.depth)
+    assert torch.allclose(parts.rgb, whole.rgb, atol=1e-6)  # the colour MLP on other row counts: rounding at most
+    close(parts, render(field, 0, None, origins, directions))
+
+
+@needs_warp
+def test_feature_reads_and_the_outer_space_split_over_the_cores_equal_one_launch(monkeypatch):
+    from frugalnerf_ns.field.outer_space import OuterSpace
+
+    torch.manual_seed(12)
+    field = FrugalNeRFField(AABB_FEATURES, (21, 26, 19), density_components=(2, 2, 2), appearance_components=(5, 3, 2),
+                            mlp_hidden_dim=16, mlp_implementation="torch")
+    outer = OuterSpace(torch.tensor([[-1.0, -0.5, -1.0], [1.0, 0.5, 1.0]]), 24, 4, 4, 32, 16)
+    with torch.no_grad():
+        for tensor in [*field.appearance_grid.planes, *field.appearance_grid.lines, *outer.density_grid.planes,
+                       *outer.density_grid.lines, *outer.appearance_grid.planes, *outer.appearance_grid.lines]:
+            tensor.uniform_(0.0, 0.8)
+    coords = torch.rand(5001, 3, generator=torch.Generator().manual_seed(13)) * 2.2 - 1.1
+    origins, directions = rays(999, seed=14)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    with torch.no_grad():
+        tables = fused_kernels.channels_last(*field.appearance_grid.scale_views(1))
+        monkeypatch.setattr(fused_kernels, "SPLIT_MIN_ROWS", 10**9)  # one launch
+        one = fused_kernels.vm_features(wp, tables, coords), outer.render(origins, directions, False, 0.0, wp)
+        monkeypatch.setattr(fused_kernels, "SPLIT_MIN_ROWS", 100)  # a part per core
+        split = fused_kernels.vm_features(wp, tables, coords), outer.render(origins, directions, False, 0.0, wp)
+    assert torch.equal(one[0], split[0]) and float(one[0].abs().mean()) > 0.05
+    for a, b in zip(one[1], split[1]):  # front, behind
+        assert torch.equal(a.rgb, b.rgb) and torch.equal(a.accumulation, b.accumulation) and torch.equal(a.depth, b.depth)
+    assert float(one[1][1].accumulation.mean()) > 0.05
+
+
+@needs_warp
+def test_with_the_kernels_the_model_renders_a_frame_in_one_chunk_and_keeps_its_chunk_option():
+    from nerfstudio.cameras.cameras import Cameras
+
+    from tests.helpers import tiny_model
+
+    model = tiny_model(eval_num_rays_per_chunk=100)
+    model.eval()
+    with torch.no_grad():
+        for line in model.field.density_grid.lines:
+            line.add_(0.4)
+    camera = Cameras(camera_to_worlds=torch.tensor([[[1.0, 0.0, 0.0, 0.1], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 2.5]]]),
+                     fx=30.0, fy=30.0, cx=16.0, cy=12.0, width=32, height=24)
+    chunks = []
+    forward = model.forward
+    model.forward = lambda ray_bundle: chunks.append(len(ray_bundle)) or forward(ray_bundle=ray_bundle)
+    frames = {}
+    for kernels in ("warp", "torch"):
+        model.config.kernels = kernels
+        chunks.clear()
+        frames[kernels] = model.get_outputs_for_camera(camera)
+        assert chunks == ([32 * 24] if kernels == "warp" else [100] * 7 + [68])
+        assert model.config.eval_num_rays_per_chunk == 100
+    assert frames["warp"]["rgb"].shape == (24, 32, 3) and float(frames["torch"]["accumulation"].max()) > 0.5
+    assert torch.allclose(frames["warp"]["rgb"], frames["torch"]["rgb"], atol=2e-5)
+    model.train()  # training renders through nerfstudio's chunks whatever the kernels
+    chunks.clear()
+    with torch.no_grad():
+        model.get_outputs_for_camera_ray_bundle(camera.generate_rays(camera_indices=0, keep_shape=True))
+    assert chunks == [100] * 7 + [68]
+
+
+def test_the_fused_linear_relu_gives_relu_of_the_linear():
+    from frugalnerf_ns.field.color_mlp import linear_relu
+
+    generator = torch.Generator().manual_seed(15)
+    x, weight, bias = torch.randn(3000, 27, generator=generator), torch.randn(64, 27, generator=generator), torch.randn(64, generator=generator)
+    for dtype in (torch.float32, torch.bfloat16):
+        ours = linear_relu(x.to(dtype), weight.to(dtype), bias.to(dtype))
+        reference = torch.relu(torch.nn.functional.linear(x.to(dtype), weight.to(dtype), bias.to(dtype)))
+        assert ours.dtype == dtype and torch.allclose(ours.float(), reference.float(), rtol=1e-2, atol=1e-2)
+        assert float((ours == 0).float().mean()) > 0.3 and float(ours.min()) == 0.0

@@ -9,7 +9,8 @@ Rows (seconds per frame or per test view, same machine, same model, same image s
   leave the box or turn opaque; with the PSNR and largest pixel difference between the two renders;
 - test view and spiral frame, inference marcher on its torch path and with the fused kernels
   (``--pipeline.model.kernels torch`` / ``warp``; where the CPU multiplies bfloat16 also the kernels with the
-  float32 colour MLP), alternating over ``--repeats`` rounds (medians), with the PSNR and largest pixel
+  float32 colour MLP, and the kernels on one core in chunks of ``eval_num_rays_per_chunk``, as before they used
+  every core), alternating over ``--repeats`` rounds (medians), with the PSNR and largest pixel
   difference between them (when Warp compiles here);
 - with ``--before DIR`` (a source tree of an earlier commit, e.g. ``git worktree add /tmp/before <rev>``): test
   view, that tree's ``render_scale_inference`` run on this process's model (it must call only field methods
@@ -114,21 +115,31 @@ def main(argv=None) -> list:
     def compare_kernels() -> list:
         """The inference marcher on its torch path and with the fused kernels, alternating, median seconds per test
         view and per spiral frame."""
-        from frugalnerf_ns.field import radiance_field
+        from frugalnerf_ns.field import fused_kernels, radiance_field
+        import frugalnerf_ns.model.frugalnerf as model_module
 
         chosen, native, times = model.config.kernels, radiance_field.native_bfloat16, {}
+        every_core, chunk_rays = fused_kernels.on_every_core, model_module.FUSED_CHUNK_RAYS
         # Where the CPU multiplies bfloat16, "warp" (the default) shades in bfloat16: its float32 colour beside it.
-        paths = ("torch", "warp float32 colour", "warp") if native() else ("torch", "warp")
+        # "warp one core": the kernels as before they used every core (the model's eval_num_rays_per_chunk, each
+        # launch in this thread).
+        paths = ("torch", "warp float32 colour", "warp one core", "warp") if native() else ("torch", "warp one core", "warp")
         try:
             for _ in range(args.repeats):
                 for path in paths:
                     model.config.kernels = path.split()[0]
-                    radiance_field.native_bfloat16 = native if path == "warp" else (lambda: False)
+                    radiance_field.native_bfloat16 = native if path.startswith("warp") and "float32" not in path \
+                        else (lambda: False)
+                    one_core = path == "warp one core"
+                    fused_kernels.on_every_core = (lambda jobs: [job() for job in jobs]) if one_core else every_core
+                    model_module.FUSED_CHUNK_RAYS = 0 if one_core else chunk_rays
                     times.setdefault(("view", path), []).append(timed(lambda: test_views(True, path)) / len(views))
                     times.setdefault(("frame", path), []).append(timed(lambda: render_path(ours)) / args.frames)
         finally:
             model.config.kernels, radiance_field.native_bfloat16 = chosen, native
+            fused_kernels.on_every_core, model_module.FUSED_CHUNK_RAYS = every_core, chunk_rays
         named = {"torch": "torch path", "warp float32 colour": "fused kernels, float32 colour MLP",
+                 "warp one core": "fused kernels on one core in chunks of eval_num_rays_per_chunk (before)",
                  "warp": "fused kernels" + (", bfloat16 colour MLP (the default here)" if native() else "")}
         return [(f"{what}, inference marcher, {named[path]}, median of {args.repeats}", statistics.median(times[(key, path)]))
                 for key, what in (("view", "test view"), ("frame", "spiral frame")) for path in paths]
@@ -150,6 +161,7 @@ def main(argv=None) -> list:
     if kernel_rows:
         agreement["psnr_warp_vs_torch"] = psnr_between(renders["warp"], renders["torch"])
         agreement["max_pixel_difference_warp_vs_torch"] = largest_difference(renders["warp"], renders["torch"])
+        agreement["max_pixel_difference_warp_vs_one_core"] = largest_difference(renders["warp"], renders["warp one core"])
         if "warp float32 colour" in renders:
             agreement["psnr_warp_float32_vs_torch"] = psnr_between(renders["warp float32 colour"], renders["torch"])
     if before_marcher is not None:
@@ -169,6 +181,8 @@ def main(argv=None) -> list:
                   f"largest pixel difference {agreement['max_pixel_difference_warp_vs_torch']:.2e}")
         if "psnr_warp_float32_vs_torch" in agreement:
             table += f" (with the float32 colour MLP: PSNR {agreement['psnr_warp_float32_vs_torch']:.1f} dB)"
+        table += (f"\nfused kernels on every core vs one core: largest pixel difference "
+                  f"{agreement['max_pixel_difference_warp_vs_one_core']:.2e}")
     if before_marcher is not None:
         table += (f"\ninference marcher now vs {args.before}: PSNR {agreement['psnr_inference_vs_before']:.1f} dB, "
                   f"largest pixel difference {largest_difference(renders['now'], renders['before']):.2e}")

@@ -12,13 +12,17 @@ the samples to shade (t, weight) in the ray's share of one list; the colour MLP 
 frame in a few dozen element-wise passes over every marched slot and in the bookkeeping of its packed rays;
 here a slot costs one pass of registers and a ray stops where it terminates.
 
-Warp's CPU kernels run on one thread, and here two Python threads launching halves of the rays took longer than one
-(a fern frame's march 0.43 -> 0.52 s, its feature reads 0.37 -> 0.46 s): each kernel runs on one core while torch's
-colour MLP uses all of them."""
+Warp's CPU kernels run on one thread; a launch releases the GIL, so ``on_every_core`` runs launches on a pool of
+torch's thread count. That pays only over many rays at once: two threads marching halves of each 4096-ray chunk were
+slower than one launch (a fern frame 1.61 -> 2.06 s), because the colour MLP's OpenMP threads keep spinning on the
+other core for a while after every matrix product. So outside training the model renders the CPU's frames in large
+chunks (``rendering.FUSED_CHUNK_RAYS``): each marches all its rays in blocks of ``MARCH_BLOCK_RAYS`` over the pool
+(``density_march_blocks``), then reads the features of its shaded samples in parts (``vm_features``)."""
 
 from __future__ import annotations
 
 import contextlib
+from concurrent.futures import ThreadPoolExecutor
 import os
 import sys
 import threading
@@ -33,6 +37,27 @@ from frugalnerf_ns.field.fused_kernel_source import define_kernels
 
 _state: dict = {}
 _lock = threading.Lock()
+
+MARCH_BLOCK_RAYS = 4096
+"""Rays per ``density_march`` launch in ``density_march_blocks``: a launch allocates each ray's upper bound of samples
+to shade (up to ``num_samples`` floats twice per ray), so blocks keep that list to tens of MB at any chunk size."""
+
+SPLIT_MIN_ROWS = 16384
+"""``vm_features`` and ``outer_composite`` split their rows over the pool from this many (below it one launch costs
+less than the hand-off)."""
+
+
+def on_every_core(jobs: list) -> list:
+    """The jobs' results, in order, run on a pool of ``torch.get_num_threads()`` threads (one: in this thread).
+    For Warp launches on the CPU, which release the GIL and run on one core each."""
+    workers = max(1, torch.get_num_threads())
+    if workers == 1 or len(jobs) < 2:
+        return [job() for job in jobs]
+    with _lock:
+        pool = _state.get("pool")
+        if pool is None or pool._max_workers != workers:  # torch's thread count changed since the last frame
+            pool = _state["pool"] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="frugalnerf-fused")
+    return [future.result() for future in [pool.submit(job) for job in jobs]]
 
 
 class WarpKernels(NamedTuple):
@@ -202,6 +227,24 @@ def density_march(
     return MarchResult(sums[:, 0], sums[:, 1], ray_of_row, shade_t[rows], shade_w[rows])
 
 
+def density_march_blocks(fused: WarpKernels, baked, aabb: Tensor, inside_mask, o: Tensor, d: Tensor, t_near: Tensor,
+                         t_far: Tensor, *settings) -> MarchResult:
+    """``density_march`` over blocks of ``MARCH_BLOCK_RAYS`` rays on every core (``on_every_core``), joined in ray
+    order: the same result as one launch over all rays (each ray is marched on its own; ``settings`` — the group
+    bounds and the rest of ``density_march``'s arguments — are the same for every block)."""
+    block_rays = max(1, MARCH_BLOCK_RAYS)
+    starts = range(0, o.shape[0], block_rays)
+    if len(starts) <= 1:
+        return density_march(fused, baked, aabb, inside_mask, o, d, t_near, t_far, *settings)
+    parts = on_every_core([
+        (lambda a=a: density_march(fused, baked, aabb, inside_mask, o[a:a + block_rays], d[a:a + block_rays],
+                                   t_near[a:a + block_rays], t_far[a:a + block_rays], *settings))
+        for a in starts])
+    rays = [part.rays + a for part, a in zip(parts, starts)]
+    return MarchResult(*(torch.cat(x) for x in ([p.accumulation for p in parts], [p.weighted_t for p in parts], rays,
+                                                 [p.t for p in parts], [p.weights for p in parts])))
+
+
 def _ordered(kernel, inputs: dict, shared: dict) -> list:
     """The kernel's arguments in its signature's order, from the per-launch and shared ones by name."""
     every = {**shared, **inputs}
@@ -210,8 +253,8 @@ def _ordered(kernel, inputs: dict, shared: dict) -> list:
 
 def outer_composite(fused: WarpKernels, table: Tensor, dims, centre: Tensor, half: Tensor, origins: Tensor, directions: Tensor,
                     edges: Tensor, t: Tensor, distance_scale: float, max_optical: float) -> Tensor:
-    """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU:
-    [rays, 5] accumulation, colour sum (3), disparity sum."""
+    """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU, in one part
+    per core from ``SPLIT_MIN_ROWS`` rays (``_parts``): [rays, 5] accumulation, colour sum (3), disparity sum."""
     wp, kernel = fused.wp, fused.kernels["outer_composite"]
     rays = origins.shape[0]
     sums = torch.zeros(rays, 5, dtype=torch.float32)
@@ -221,10 +264,12 @@ def outer_composite(fused: WarpKernels, table: Tensor, dims, centre: Tensor, hal
     shared = [wp.from_torch(table), wp.vec3i(*[int(v) for v in dims]), wp.vec3(*[float(v) for v in centre]),
               wp.vec3(*[float(v) for v in half]), float(distance_scale), float(max_optical)]
 
-    if rays:
-        wp.launch(kernel, dim=rays, device="cpu", inputs=[
-            wp.from_torch(o, dtype=wp.vec3), wp.from_torch(d, dtype=wp.vec3), wp.from_torch(edges), wp.from_torch(t),
-            *shared, wp.from_torch(sums)])
+    def launch(a: int, b: int) -> None:
+        wp.launch(kernel, dim=b - a, device="cpu", inputs=[
+            wp.from_torch(o[a:b], dtype=wp.vec3), wp.from_torch(d[a:b], dtype=wp.vec3), wp.from_torch(edges[a:b]),
+            wp.from_torch(t[a:b]), *shared, wp.from_torch(sums[a:b])])
+
+    on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(rays)])
     return sums
 
 
@@ -241,13 +286,24 @@ def channels_last(planes, lines) -> list:
 
 def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Tensor:
     """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
-    ``channels_last`` tables, on the CPU."""
+    ``channels_last`` tables, on the CPU; from ``SPLIT_MIN_ROWS`` rows in one part per core (``_parts``; each row
+    is read on its own, so the parts give the rows one launch gives)."""
     wp, kernel = fused.wp, fused.kernels["vm_features"]
     n = coords.shape[0]
     out = torch.empty(n, sum(t[0].shape[1] for t in tables), dtype=torch.float32)
     coords = coords.to(torch.float32).contiguous()
     shared = [x for plane, width, height, line in tables for x in (wp.from_torch(plane), width, height, wp.from_torch(line))]
 
-    if n:
-        wp.launch(kernel, dim=n, device="cpu", inputs=[wp.from_torch(coords, dtype=wp.vec3), *shared, wp.from_torch(out)])
+    def launch(a: int, b: int) -> None:
+        wp.launch(kernel, dim=b - a, device="cpu",
+                  inputs=[wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b])])
+
+    on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(n)])
     return out
+
+
+def _parts(n: int) -> list:
+    """Row ranges [a, b) covering n rows: one per core from ``SPLIT_MIN_ROWS`` rows, else one (none for none)."""
+    parts = max(1, torch.get_num_threads()) if n >= SPLIT_MIN_ROWS else 1
+    bounds = [n * k // parts for k in range(parts + 1)]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]

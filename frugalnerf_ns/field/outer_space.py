@@ -191,3 +191,16 @@ class OuterSpace(nn.Module):
 
     def network_parameters(self):
         return list(self.color_basis.parameters())
+
+
+def depth_through_outer_space(
+    front: OuterRender, accumulation: Tensor, box_depth: Tensor, behind: OuterRender
+) -> Tensor:
+    """A ray's whole depth where the space outside the box is modelled (warps, L_sd, the viewer): the outside in
+    front of the box, the box's share of what it lets through and the outside behind, composited in disparity as
+    the outer space composites its own samples (``OuterSpace.render``):
+    1 / depth = 1 / d_front + (1 - acc_front) (acc / d_box + (1 - acc) / d_behind)."""
+    dtype = box_depth.dtype
+    accumulation, through = accumulation.to(dtype), 1.0 - front.accumulation.to(dtype)
+    inside = accumulation / box_depth.clamp_min(1e-6) + (1.0 - accumulation) / behind.depth.to(dtype)
+    return 1.0 / (1.0 / front.depth.to(dtype) + through * inside)

@@ -30,7 +30,7 @@ from frugalnerf_ns.errors import UserError
 from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
-from frugalnerf_ns.field.outer_space import OuterRender, OuterSpace
+from frugalnerf_ns.field.outer_space import OuterSpace, depth_through_outer_space
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
 from frugalnerf_ns.model.geometric_adaptation import (
     ADAPTATION_METRIC,
@@ -46,7 +46,8 @@ from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.geometry.raymarch import exit_distances, intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
-from frugalnerf_ns.model.rendering import StepRender, render_scale, render_scale_inference, scale_suffix
+from frugalnerf_ns.model.rendering import (FUSED_CHUNK_RAYS, StepRender, render_scale, render_scale_inference,
+                                           scale_suffix)
 from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.model.training_schedule import ScheduleFactors, schedule_factors, schedule_length, training_callbacks
 
@@ -326,6 +327,18 @@ class FrugalNeRFModel(Model):
             outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
         return outputs
 
+    def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
+        """nerfstudio's chunked render; where the fused kernels render on the CPU, in chunks of at least
+        ``FUSED_CHUNK_RAYS`` (a chunk marches on every core; its memory per ray is small)."""
+        chunk = self.config.eval_num_rays_per_chunk
+        if not self.training and self.config.fast_inference and self.device.type == "cpu" and \
+                self.field.baked_density(0) is not None and warp_kernels(self.config.kernels, CONSOLE.print) is not None:
+            self.config.eval_num_rays_per_chunk = max(chunk, FUSED_CHUNK_RAYS)
+        try:
+            return super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)
+        finally:
+            self.config.eval_num_rays_per_chunk = chunk
+
     def get_outputs_for_camera(self, camera, obb_box=None) -> Dict[str, Tensor]:
         outputs = super().get_outputs_for_camera(camera, obb_box=obb_box)
         if self.frame_progress is not None:  # a video being rendered (video.teach_ns_render_spiral)
@@ -413,19 +426,6 @@ class FrugalNeRFModel(Model):
         mask = batch.get("eval_mask")
         return self.scorer.metrics_and_images(outputs, image, None if mask is None else mask.to(self.device),
                                               self.field.num_scales)
-
-
-def depth_through_outer_space(
-    front: OuterRender, accumulation: Tensor, box_depth: Tensor, behind: OuterRender
-) -> Tensor:
-    """A ray's whole depth where the space outside the box is modelled (warps, L_sd, the viewer): the outside in
-    front of the box, the box's share of what it lets through and the outside behind, composited in disparity as
-    the outer space composites its own samples (``OuterSpace.render``):
-    1 / depth = 1 / d_front + (1 - acc_front) (acc / d_box + (1 - acc) / d_behind)."""
-    dtype = box_depth.dtype
-    accumulation, through = accumulation.to(dtype), 1.0 - front.accumulation.to(dtype)
-    inside = accumulation / box_depth.clamp_min(1e-6) + (1.0 - accumulation) / behind.depth.to(dtype)
-    return 1.0 / (1.0 / front.depth.to(dtype) + through * inside)
 
 
 FAR_BACKGROUND_MISSING = (

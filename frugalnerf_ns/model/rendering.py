@@ -137,6 +137,18 @@ model about a fifth of the shaded samples carry ~1e-3 of a ray's weight between 
 half of a frame."""
 
 
+FUSED_CHUNK_RAYS = 1 << 18
+"""Rays per chunk at least, outside training, where the fused kernels render on the CPU
+(``FrugalNeRFModel.get_outputs_for_camera_ray_bundle``): a chunk marches its rays on every core
+(``fused_kernels.density_march_blocks``) and a frame of up to 512x512 is one chunk, so the colour MLP's
+spinning OpenMP threads meet the march once a frame, not once per 4096 rays. Memory stays bounded by the march's
+blocks and ``SHADE_ROWS``."""
+
+SHADE_ROWS = 1 << 15
+"""Shaded samples whose colour one call of ``inference_color`` computes in the fused path (features, MLP inputs
+and hidden layers of this many rows at once: ~100-150 MB at the CPU presets' sizes)."""
+
+
 class PixelRender(NamedTuple):
     """What a render outside training keeps of a scale: the pixel values."""
 
@@ -209,18 +221,19 @@ def render_scale_inference(
     o, d = origins[ids].to(compute), directions[ids].to(compute)
     t_near, t_far = segments.t_near[ids].to(compute), segments.t_far[ids].to(compute)
     if kernels is not None and baked is not None and device.type == "cpu":
-        fused = fused_kernels.density_march(
+        fused = fused_kernels.density_march_blocks(
             kernels, baked, field_.aabb, field_.mask_lookup(), o, d, t_near, t_far,
             baked.group_bounds(d, step, group), step, num_samples, group, per_block, delta, weight_threshold,
             FAINT_WEIGHT, faint_budget, stop_optical, MAX_OPTICAL_DEPTH)
         sums[ids, 0], sums[ids, 1] = fused.accumulation.to(compute), fused.weighted_t.to(compute)
-        if fused.rays.numel():
-            rows, t = fused.rays, fused.t.to(compute)
+        rgb = torch.zeros(ids.numel(), 3, device=device, dtype=compute)
+        # The shaded samples' colours in parts: a large chunk's features and MLP layers would not fit otherwise.
+        for first in range(0, fused.rays.numel(), SHADE_ROWS):
+            rows, t = fused.rays[first : first + SHADE_ROWS], fused.t[first : first + SHADE_ROWS].to(compute)
             positions = o[rows] + d[rows] * t[:, None]
             colors = field_.inference_color(positions, d[rows], scale, kernels).to(compute)
-            rgb = torch.zeros(ids.numel(), 3, device=device, dtype=compute)
-            rgb.index_add_(0, rows, colors * fused.weights.to(compute)[:, None])
-            sums[ids, 2:5] = rgb
+            rgb.index_add_(0, rows, colors * fused.weights[first : first + SHADE_ROWS].to(compute)[:, None])
+        sums[ids, 2:5] = rgb
         return _pixels(sums, segments, background, compute)
     # The groups of slots each ray marches: those that start inside its segment and can hold density (the
     # others add nothing to any sum), in order, packed to the front of ``order`` (``count`` per ray).

@@ -37,7 +37,7 @@ def depth_at_points(pipeline, sparse) -> torch.Tensor:
     depth = out["depth"].reshape(-1).cpu()
     far = getattr(model, "far_background", None)
     outer = getattr(model, "outer_space", None)
-    # With the outer space the model's depth already runs through the box and beyond (depth_through_outer_space).
+    # With the outer space the model's depth already runs through the box and beyond (outer_space.depth_through_outer_space).
     if far is not None and far.has_shell and (outer is None or not outer.is_active):
         flat = bundle.reshape((-1,))
         far_depth = far.distance(flat.origins, flat.directions).reshape(-1).cpu()
