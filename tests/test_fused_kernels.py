@@ -215,6 +215,7 @@ def test_jobs_on_every_core_run_in_the_pool_and_come_back_in_order(monkeypatch):
     import threading
 
     jobs = [(lambda k=k: (k, threading.current_thread().name)) for k in range(7)]
+    monkeypatch.delitem(fused_kernels._state, "pool", raising=False)  # a pool of this test's own, dropped after it
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     results = fused_kernels.on_every_core(jobs)
     assert [k for k, _ in results] == list(range(7))
@@ -223,6 +224,15 @@ def test_jobs_on_every_core_run_in_the_pool_and_come_back_in_order(monkeypatch):
     assert {name for _, name in fused_kernels.on_every_core(jobs)} == {threading.current_thread().name}
     with pytest.raises(ZeroDivisionError):  # a job's error reaches the caller
         fused_kernels.on_every_core([lambda: 1, lambda: 1 / 0])
+
+
+@pytest.mark.skipif(torch.get_num_threads() < 2, reason="one core: no pool")
+def test_torch_in_the_pool_runs_on_one_thread_and_the_caller_keeps_its_threads(monkeypatch):
+    # A pool thread leading OpenMP teams of its own would slow every later parallel torch operation of the caller.
+    monkeypatch.delitem(fused_kernels._state, "pool", raising=False)
+    threads = torch.get_num_threads()
+    seen = fused_kernels.on_every_core([torch.get_num_threads] * 4)
+    assert seen == [1] * 4 and torch.get_num_threads() == threads
 
 
 @needs_warp

@@ -54,10 +54,33 @@ def on_every_core(jobs: list) -> list:
     if workers == 1 or len(jobs) < 2:
         return [job() for job in jobs]
     with _lock:
-        pool = _state.get("pool")
-        if pool is None or pool._max_workers != workers:  # torch's thread count changed since the last frame
-            pool = _state["pool"] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="frugalnerf-fused")
+        pool, size = _state.get("pool", (None, 0))
+        if pool is None or size != workers:  # torch's thread count changed since the last frame
+            pool = _start_pool(workers)
+            _state["pool"] = (pool, workers)
     return [future.result() for future in [pool.submit(job) for job in jobs]]
+
+
+def _one_thread() -> None:
+    """A pool thread's set-up: torch's own per-thread set-up first (it would otherwise run at the thread's first
+    parallel operation and set the process-wide count again), then one thread for this thread's operations."""
+    torch.get_num_threads()
+    torch.set_num_threads(1)
+
+
+def _start_pool(workers: int) -> ThreadPoolExecutor:
+    """A pool of ``workers`` threads whose torch operations run on one OpenMP thread each. A pool thread running a
+    parallel torch operation would otherwise lead an OpenMP team of its own; with more OpenMP threads than cores
+    libgomp lets idle threads sleep sooner, and every later parallel region in the main thread pays for waking
+    them (the torch path's fern frame went from ~3 to ~5 s after a frame on the pool)."""
+    ready = threading.Barrier(workers + 1)
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="frugalnerf-fused", initializer=_one_thread)
+    started = [pool.submit(ready.wait) for _ in range(workers)]  # every thread started and set up
+    ready.wait()
+    torch.set_num_threads(workers)  # torch's count for new threads is process-wide: back to this thread's
+    for future in started:
+        future.result()
+    return pool
 
 
 class WarpKernels(NamedTuple):
