@@ -46,8 +46,8 @@ from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
 from frugalnerf_ns.geometry.raymarch import exit_distances, intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
-from frugalnerf_ns.model.rendering import (FUSED_CHUNK_RAYS, StepRender, render_scale, render_scale_inference,
-                                           scale_suffix)
+from frugalnerf_ns.model.rendering import (FUSED_CHUNK_RAYS, StepRender, render_in_chunks, render_scale,
+                                           render_scale_inference, scale_suffix)
 from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.model.training_schedule import ScheduleFactors, schedule_factors, schedule_length, training_callbacks
 
@@ -330,14 +330,11 @@ class FrugalNeRFModel(Model):
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
         """nerfstudio's chunked render; where the fused kernels render on the CPU, in chunks of at least
         ``FUSED_CHUNK_RAYS`` (a chunk marches on every core; its memory per ray is small)."""
-        chunk = self.config.eval_num_rays_per_chunk
-        if not self.training and self.config.fast_inference and self.device.type == "cpu" and \
-                self.field.baked_density(0) is not None and warp_kernels(self.config.kernels, CONSOLE.print) is not None:
-            self.config.eval_num_rays_per_chunk = max(chunk, FUSED_CHUNK_RAYS)
-        try:
+        if self.training or not self.config.fast_inference or self.device.type != "cpu" or \
+                self.field.baked_density(0) is None or warp_kernels(self.config.kernels, CONSOLE.print) is None:
             return super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)
-        finally:
-            self.config.eval_num_rays_per_chunk = chunk
+        with torch.no_grad():
+            return render_in_chunks(self, camera_ray_bundle, max(self.config.eval_num_rays_per_chunk, FUSED_CHUNK_RAYS))
 
     def get_outputs_for_camera(self, camera, obb_box=None) -> Dict[str, Tensor]:
         outputs = super().get_outputs_for_camera(camera, obb_box=obb_box)

@@ -10,9 +10,10 @@ the pixel values. ``render_scale`` is its test oracle (tests/test_inference_rend
 
 from __future__ import annotations
 
+from collections import defaultdict
 from dataclasses import dataclass
 import math
-from typing import List, NamedTuple, Optional
+from typing import Dict, List, NamedTuple, Optional
 
 import torch
 from jaxtyping import Bool, Float
@@ -148,6 +149,20 @@ SHADE_ROWS = 1 << 15
 """Shaded samples whose colour one call of ``inference_color`` computes in the fused path (features, MLP inputs and
 hidden layers of this many rows at once: ~30 MB at the CPU presets' sizes; parts of 128 k rows ran the colour MLP
 ~1.9x slower, their intermediate tensors no longer in the cache)."""
+
+
+def render_in_chunks(model, bundle, rays_per_chunk: int) -> Dict[str, Tensor]:
+    """What nerfstudio's ``Model.get_outputs_for_camera_ray_bundle`` does, with the caller's chunk size (not the
+    config's: another thread may render at the same time): ``model.forward`` on each chunk of the image's rays
+    (row-major), its tensor outputs joined in the image's shape on the bundle's device."""
+    height, width = bundle.origins.shape[:2]
+    joined = defaultdict(list)
+    for start in range(0, len(bundle), rays_per_chunk):
+        chunk = bundle.get_row_major_sliced_ray_bundle(start, start + rays_per_chunk).to(model.device)
+        for name, value in model.forward(ray_bundle=chunk).items():
+            if isinstance(value, Tensor):
+                joined[name].append(value.to(bundle.directions.device))
+    return {name: torch.cat(values).view(height, width, -1) for name, values in joined.items()}
 
 
 class PixelRender(NamedTuple):
