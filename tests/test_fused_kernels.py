@@ -327,3 +327,19 @@ def test_the_fused_linear_relu_gives_relu_of_the_linear():
         reference = torch.relu(torch.nn.functional.linear(x.to(dtype), weight.to(dtype), bias.to(dtype)))
         assert ours.dtype == dtype and torch.allclose(ours.float(), reference.float(), rtol=1e-2, atol=1e-2)
         assert float((ours == 0).float().mean()) > 0.3 and float(ours.min()) == 0.0
+
+
+@pytest.mark.skipif(torch.get_num_threads() < 2 or not hasattr(__import__("os"), "fork"), reason="no pool / no fork")
+def test_a_forked_child_gets_a_pool_of_its_own():
+    import os
+
+    fused_kernels.on_every_core([lambda: 1, lambda: 2])  # the parent's pool exists
+    child = os.fork()
+    if child == 0:  # the parent's pool threads are not in the child: a job sent to them would never run
+        import signal
+
+        signal.alarm(30)  # a child that hangs dies instead (and fails the test)
+        code = 0 if fused_kernels.on_every_core([lambda: 1, lambda: 2]) == [1, 2] else 1
+        os._exit(code)
+    _, status = os.waitpid(child, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0

@@ -54,10 +54,12 @@ def on_every_core(jobs: list) -> list:
     if workers == 1 or len(jobs) < 2:
         return [job() for job in jobs]
     with _lock:
-        pool, size = _state.get("pool", (None, 0))
-        if pool is None or size != workers:  # torch's thread count changed since the last frame
+        pool, size, pid = _state.get("pool", (None, 0, 0))
+        # A new pool when torch's thread count changed since the last frame, or in a forked child (which has none
+        # of its parent's threads).
+        if pool is None or size != workers or pid != os.getpid():
             pool = _start_pool(workers)
-            _state["pool"] = (pool, workers)
+            _state["pool"] = (pool, workers, os.getpid())
     return [future.result() for future in [pool.submit(job) for job in jobs]]
 
 
