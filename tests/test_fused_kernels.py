@@ -310,6 +310,15 @@ def test_with_the_kernels_the_model_renders_a_frame_in_one_chunk_and_keeps_its_c
         assert model.config.eval_num_rays_per_chunk == 100
     assert frames["warp"]["rgb"].shape == (24, 32, 3) and float(frames["torch"]["accumulation"].max()) > 0.5
     assert torch.allclose(frames["warp"]["rgb"], frames["torch"]["rgb"], atol=2e-5)
+    # A column of selected rays (the masked evaluator's call: offline_tools.render_view) in one chunk too.
+    model.config.kernels = "warp"
+    bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
+    inside = frames["torch"]["accumulation"][..., 0] > 0.5
+    count = int(inside.sum())
+    chunks.clear()
+    column = model.get_outputs_for_camera_ray_bundle(bundle[inside].reshape((count, 1)))["rgb"]
+    assert chunks == [count] and column.shape == (count, 1, 3) and 100 < count < 32 * 24
+    assert torch.allclose(column[:, 0], frames["torch"]["rgb"][inside], atol=2e-5)
     model.train()  # training renders through nerfstudio's chunks whatever the kernels
     chunks.clear()
     with torch.no_grad():
