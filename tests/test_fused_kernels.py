@@ -215,7 +215,7 @@ def test_jobs_on_every_core_run_in_the_pool_and_come_back_in_order(monkeypatch):
     import threading
 
     jobs = [(lambda k=k: (k, threading.current_thread().name)) for k in range(7)]
-    monkeypatch.delitem(fused_kernels._state, "pool", raising=False)  # a pool of this test's own, dropped after it
+    monkeypatch.setitem(fused_kernels._state, "pool", (None, 0, 0))  # a pool of this test's own, dropped after it
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     results = fused_kernels.on_every_core(jobs)
     assert [k for k, _ in results] == list(range(7))
@@ -229,7 +229,7 @@ def test_jobs_on_every_core_run_in_the_pool_and_come_back_in_order(monkeypatch):
 @pytest.mark.skipif(torch.get_num_threads() < 2, reason="one core: no pool")
 def test_torch_in_the_pool_runs_on_one_thread_and_the_caller_keeps_its_threads(monkeypatch):
     # A pool thread leading OpenMP teams of its own would slow every later parallel torch operation of the caller.
-    monkeypatch.delitem(fused_kernels._state, "pool", raising=False)
+    monkeypatch.setitem(fused_kernels._state, "pool", (None, 0, 0))
     threads = torch.get_num_threads()
     seen = fused_kernels.on_every_core([torch.get_num_threads] * 4)
     assert seen == [1] * 4 and torch.get_num_threads() == threads
@@ -246,6 +246,7 @@ def test_a_march_in_blocks_on_every_core_and_colours_in_parts_give_one_launchs_p
     calls = []
     march = fused_kernels.density_march
     monkeypatch.setattr(fused_kernels, "density_march", lambda *a: calls.append(a[4].shape[0]) or march(*a))
+    monkeypatch.setitem(fused_kernels._state, "pool", (None, 0, 0))  # not left for later tests: torch's count is faked
     monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
     monkeypatch.setattr(fused_kernels, "MARCH_BLOCK_RAYS", 256)
     monkeypatch.setattr(fused_kernels, "SPLIT_MIN_ROWS", 100)
@@ -272,6 +273,7 @@ def test_feature_reads_and_the_outer_space_split_over_the_cores_equal_one_launch
             tensor.uniform_(0.0, 0.8)
     coords = torch.rand(5001, 3, generator=torch.Generator().manual_seed(13)) * 2.2 - 1.1
     origins, directions = rays(999, seed=14)
+    monkeypatch.setitem(fused_kernels._state, "pool", (None, 0, 0))
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     with torch.no_grad():
         tables = fused_kernels.channels_last(*field.appearance_grid.scale_views(1))
