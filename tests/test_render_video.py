@@ -91,13 +91,16 @@ def test_render_benchmark_times_every_row_on_one_run(trained_run, tmp_path, caps
                  "--before", str(tree), "--repeats", "1"])
     records = json.loads(out.read_text())
     # The torch path and the fused kernels alternate first (where Warp compiles: always with the pinned set).
+    # The torch path, the kernels on one core (as before they used every core) and the kernels.
     assert [r["row"].split(",")[0] for r in records] == (
-        ["test view"] * 2 + ["spiral frame"] * 2
+        ["test view"] * 3 + ["spiral frame"] * 3
         + ["test view"] * 2 + ["spiral frame", "ns-eval per test view", "offline evaluator per test view"]
         + ["test view"] * 2)
-    assert [r["row"].split(", ")[2] for r in records[:4]] == ["torch path", "fused kernels"] * 2
+    assert [r["row"].split(", ")[2] for r in records[:6]] == ["torch path", "fused kernels on one core in chunks of "
+                                                             "eval_num_rays_per_chunk (before)", "fused kernels"] * 2
     assert records[0]["psnr_warp_vs_torch"] > 50 and records[0]["max_pixel_difference_warp_vs_torch"] < 1 / 255
-    assert f"of {tree} (before)" in records[9]["row"] and records[0]["psnr_inference_vs_before"] > 100
+    assert records[0]["max_pixel_difference_warp_vs_one_core"] < 1 / 255
+    assert f"of {tree} (before)" in records[11]["row"] and records[0]["psnr_inference_vs_before"] > 100
     assert all(r["seconds"] > 0 for r in records) and "| test view, inference marcher (now)" in capsys.readouterr().out
     # The two marchers render the same test view (the inference one stops rays once opaque: < 1/255 apart).
     assert records[0]["psnr_inference_vs_training_marcher"] > 50 and records[0]["max_pixel_difference"] < 1 / 255
