@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from frugalnerf_ns.errors import UserError
-from frugalnerf_ns.field.fused_kernel_source import define_kernels
+from frugalnerf_ns.field.fused_kernel_source import define_kernels, define_vm_features
 
 _state: dict = {}
 _lock = threading.Lock()
@@ -304,27 +304,55 @@ def channels_last(planes, lines) -> list:
     tables = []
     for plane, line in zip(planes, lines):
         _, comps, height, width = plane.shape
-        tables.append((plane[0].permute(1, 2, 0).reshape(height * width, comps).to(torch.float32).contiguous(),
-                       width, height, line[0, :, :, 0].T.to(torch.float32).contiguous()))
+        tables.append((_rows(plane[0].permute(1, 2, 0), height * width, comps), width, height,
+                       _rows(line[0, :, :, 0].T, line.shape[2], comps)))
     return tables
+
+
+def _rows(x: Tensor, rows: int, columns: int) -> Tensor:
+    """``x`` as a contiguous float32 [rows, columns] with the strides (columns, 1), also for one column (which
+    torch calls contiguous at any stride, and Warp does not read as a vector per row)."""
+    return x.to(torch.float32).contiguous().reshape(-1).view(rows, columns)
 
 
 def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Tensor:
     """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
     ``channels_last`` tables, on the CPU; from ``SPLIT_MIN_ROWS`` rows in one part per core (``_parts``; each row
     is read on its own, so the parts give the rows one launch gives)."""
-    wp, kernel = fused.wp, fused.kernels["vm_features"]
+    wp = fused.wp
+    components = tuple(t[0].shape[1] for t in tables)
+    kernel = _feature_kernel(fused, components)
     n = coords.shape[0]
-    out = torch.empty(n, sum(t[0].shape[1] for t in tables), dtype=torch.float32)
+    out = torch.empty(n, sum(components), dtype=torch.float32)
     coords = coords.to(torch.float32).contiguous()
-    shared = [x for plane, width, height, line in tables for x in (wp.from_torch(plane), width, height, wp.from_torch(line))]
+    vectors = [wp.types.vector(length=c, dtype=wp.float32) for c in components]
+    row = wp.types.vector(length=sum(components), dtype=wp.float32)
+    shared = [x for (plane, width, height, line), vector in zip(tables, vectors)
+              for x in (wp.from_torch(plane, dtype=vector), width, height, wp.from_torch(line, dtype=vector))]
 
     def launch(a: int, b: int) -> None:
         wp.launch(kernel, dim=b - a, device="cpu",
-                  inputs=[wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b])])
+                  inputs=[wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b], dtype=row)])
 
     on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(n)])
     return out
+
+
+def _feature_kernel(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print):
+    """``vm_features`` compiled for planes of ``components`` channels (once per process and count; Warp caches
+    the build on disk), its first compile said in one line as ``_load_warp`` says the module's."""
+    key = ("vm_features", components)
+    with _lock:
+        if key not in _state:
+            kernel = define_vm_features(fused.wp, components)
+            start = time.perf_counter()
+            fused.wp.load_module(kernel.module, device="cpu")
+            seconds = time.perf_counter() - start
+            if seconds > 0.5:
+                say(f"frugalnerf: compiled the fused feature read for {components} channels in {seconds:.1f} s "
+                    f"(once per Warp version)")
+            _state[key] = kernel
+    return _state[key]
 
 
 def _parts(n: int) -> list:
