@@ -282,3 +282,31 @@ def test_training_marcher_drops_only_slots_no_ray_reaches(scale, monkeypatch):
     assert len(cut_grads) == len(full_grads) > 0
     for a, b in zip(cut_grads, full_grads):
         assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max() or 1.0))
+
+
+def test_the_group_bounds_volumes_are_the_max_pool_definitions():
+    import torch.nn.functional as F
+
+    from frugalnerf_ns.field import density
+
+    generator = torch.Generator().manual_seed(31)
+    nodes = torch.rand(9, 11, 13, generator=generator) > 0.93  # sparse: dilation changes many entries
+    pooled = F.max_pool3d(nodes.float()[None, None], kernel_size=2, stride=1)[0, 0] > 0
+    assert torch.equal(density.any_corner(nodes), pooled) and pooled.float().mean() < 0.6
+    for axis in range(3):
+        for radius in (0, 1, 3, 20):  # beyond the axis' length: every entry of a line that has one
+            kernel, padding = [1, 1, 1], [0, 0, 0]
+            kernel[axis], padding[axis] = 2 * min(radius, 6) + 1, min(radius, 6)  # max_pool3d's own limit
+            expected = F.max_pool3d(nodes.float()[None, None], kernel_size=kernel, stride=1, padding=padding)[0, 0] > 0
+            if radius <= 6:
+                assert torch.equal(density.dilate_along(nodes, axis, radius), expected)
+            else:
+                assert torch.equal(density.dilate_along(nodes, axis, radius), nodes.any(dim=axis, keepdim=True).expand_as(nodes))
+    # A baked field keeps its undilated volumes and the last few dilations.
+    field = hollow_field("relu", True)
+    baked = field.baked_density(0)
+    for r in range(1, density.DILATIONS_KEPT + 3):
+        volume = baked._dilated_occupancy("cells in mask", (r, 1, 2))
+        assert volume.dtype == torch.bool and volume.numel() == int(torch.tensor(baked.grid.shape[2:]).sub(1).prod())
+    assert len([k for k in baked._dilated if k[0] != "base"]) == density.DILATIONS_KEPT
+    assert ("base", "cells in mask") in baked._dilated
