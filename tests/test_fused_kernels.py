@@ -223,10 +223,14 @@ def test_the_bfloat16_colour_mlp_stays_within_a_255th_of_float32(monkeypatch):
         for tensor in [*model.field.appearance_grid.planes, *model.field.appearance_grid.lines]:
             tensor.normal_(0.0, 1.0)
     origins, directions = rays(400, seed=6)
-    ours, reference = render(model.field, 0, wp, origins, directions), render(model.field, 0, None, origins, directions)
-    largest = float((ours.rgb - reference.rgb).abs().max())
-    psnr = -10 * torch.log10(((ours.rgb - reference.rgb) ** 2).mean())
-    assert 0 < largest < 1 / 255 and float(psnr) > 50, (largest, float(psnr))
+    for max_baked in (None, 0):  # the baked features, then the planes read by the kernel (and the bfloat16 basis)
+        if max_baked is not None:
+            monkeypatch.setattr("frugalnerf_ns.field.radiance_field.BAKED_FEATURES_MAX_ENTRIES", max_baked)
+        assert (model.field.baked_features(0) is None) == (max_baked == 0)
+        ours, reference = render(model.field, 0, wp, origins, directions), render(model.field, 0, None, origins, directions)
+        largest = float((ours.rgb - reference.rgb).abs().max())
+        psnr = -10 * torch.log10(((ours.rgb - reference.rgb) ** 2).mean())
+        assert 0 < largest < 1 / 255 and float(psnr) > 50, (largest, float(psnr))
 
 
 def test_jobs_on_every_core_run_in_the_pool_and_come_back_in_order(monkeypatch):
