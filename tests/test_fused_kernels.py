@@ -197,6 +197,28 @@ def test_the_feature_read_is_compiled_for_each_set_of_component_counts():
     assert reads[(5, 3, 2)] is not reads[(7, 1, 4)]  # one kernel per set of counts, kept for the next frame
 
 
+@needs_warp
+def test_a_feature_read_that_does_not_compile_falls_back_to_the_planes_read_by_torch(monkeypatch, capsys):
+    from frugalnerf_ns.field import radiance_field
+
+    def broken(wp_module, components):
+        raise RuntimeError("CPU kernel build failed with error code 1")
+
+    monkeypatch.setattr(fused_kernels, "define_vm_features", broken)
+    monkeypatch.setattr(radiance_field, "BAKED_FEATURES_MAX_ENTRIES", 0)
+    monkeypatch.setitem(fused_kernels._state, ("vm_features", (6, 3, 2)), None)
+    del fused_kernels._state[("vm_features", (6, 3, 2))]  # compiled anew here (and forgotten after the test)
+    field = FrugalNeRFField(AABB_FEATURES, (21, 26, 19), density_components=(2, 2, 2), appearance_components=(6, 3, 2),
+                            mlp_hidden_dim=16, mlp_implementation="torch")
+    positions = (torch.rand(500, 3, generator=torch.Generator().manual_seed(3)) * 2 - 1) * AABB_FEATURES[1]
+    directions = torch.nn.functional.normalize(positions + 0.1, dim=-1)
+    with torch.no_grad():
+        for _ in range(2):
+            assert torch.equal(field.inference_color(positions, directions, 0, wp), field.color(positions, directions, 0))
+    said = capsys.readouterr().out
+    assert said.count("fused feature read unavailable for (6, 3, 2) channels (RuntimeError: CPU kernel build") == 1
+
+
 AABB_FEATURES = torch.tensor([[-1.0, -0.8, -1.2], [1.0, 0.8, 1.2]])
 
 

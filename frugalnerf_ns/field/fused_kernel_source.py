@@ -224,11 +224,11 @@ def define_kernels(wp) -> dict:
     return {"module": density_march.module, "density_march": density_march, "outer_composite": outer_composite}
 
 
-def define_vm_features(wp, components) -> object:
-    """``vm_features`` for planes and lines of ``components`` (XY, XZ, YZ) channels: a kernel of its own (Warp's
-    ``module="unique"``, compiled once per component counts) whose corners are vectors of a plane's channels, so a
-    read is a few vector loads and the arithmetic runs in SIMD (1.7x the same read channel by channel, a scalar
-    loop with a stride per access, on 262,144 points)."""
+def define_vm_features(wp, components) -> tuple:
+    """(``vm_features``, its three planes' vector types, its row type) for planes and lines of ``components``
+    (XY, XZ, YZ) channels: a kernel of its own (Warp's ``module="unique"``, compiled once per component counts)
+    whose corners are vectors of a plane's channels, so a read is a few vector loads and the arithmetic runs in
+    SIMD (1.7x the same read channel by channel, a scalar loop with a stride per access, on 262,144 points)."""
     c0, c1, c2 = (int(c) for c in components)
     vec0, vec1, vec2 = (wp.types.vector(length=c, dtype=wp.float32) for c in (c0, c1, c2))
     row = wp.types.vector(length=c0 + c1 + c2, dtype=wp.float32)
@@ -275,4 +275,4 @@ def define_vm_features(wp, components) -> object:
             features[c01 + k] = e[k]
         out[i] = features
 
-    return vm_features
+    return vm_features, (vec0, vec1, vec2), row

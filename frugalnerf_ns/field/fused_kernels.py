@@ -315,18 +315,19 @@ def _rows(x: Tensor, rows: int, columns: int) -> Tensor:
     return x.to(torch.float32).contiguous().reshape(-1).view(rows, columns)
 
 
-def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Tensor:
+def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Optional[Tensor]:
     """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
     ``channels_last`` tables, on the CPU; from ``SPLIT_MIN_ROWS`` rows in one part per core (``_parts``; each row
-    is read on its own, so the parts give the rows one launch gives)."""
+    is read on its own, so the parts give the rows one launch gives). None where the kernel for these component
+    counts does not compile (said once; the caller reads the planes with torch)."""
     wp = fused.wp
-    components = tuple(t[0].shape[1] for t in tables)
-    kernel = _feature_kernel(fused, components)
+    compiled = _feature_kernel(fused, tuple(t[0].shape[1] for t in tables))
+    if compiled is None:
+        return None
+    kernel, vectors, row = compiled
     n = coords.shape[0]
-    out = torch.empty(n, sum(components), dtype=torch.float32)
+    out = torch.empty(n, row._length_, dtype=torch.float32)
     coords = coords.to(torch.float32).contiguous()
-    vectors = [wp.types.vector(length=c, dtype=wp.float32) for c in components]
-    row = wp.types.vector(length=sum(components), dtype=wp.float32)
     shared = [x for (plane, width, height, line), vector in zip(tables, vectors)
               for x in (wp.from_torch(plane, dtype=vector), width, height, wp.from_torch(line, dtype=vector))]
 
@@ -339,19 +340,26 @@ def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Tensor:
 
 
 def _feature_kernel(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print):
-    """``vm_features`` compiled for planes of ``components`` channels (once per process and count; Warp caches
-    the build on disk), its first compile said in one line as ``_load_warp`` says the module's."""
+    """(kernel, per-plane vector types, row type) of ``vm_features`` for planes of ``components`` channels,
+    compiled once per process and counts (Warp caches the build on disk); its first compile said in one line as
+    ``_load_warp`` says the module's; None, said once, where it does not compile."""
     key = ("vm_features", components)
     with _lock:
         if key not in _state:
-            kernel = define_vm_features(fused.wp, components)
-            start = time.perf_counter()
-            fused.wp.load_module(kernel.module, device="cpu")
-            seconds = time.perf_counter() - start
-            if seconds > 0.5:
-                say(f"frugalnerf: compiled the fused feature read for {components} channels in {seconds:.1f} s "
-                    f"(once per Warp version)")
-            _state[key] = kernel
+            try:
+                start = time.perf_counter()
+                compiled = define_vm_features(fused.wp, components)
+                fused.wp.load_module(compiled[0].module, device="cpu")
+                seconds = time.perf_counter() - start
+                if seconds > 0.5:
+                    say(f"frugalnerf: compiled the fused feature read for {components} channels in {seconds:.1f} s "
+                        f"(once per Warp version)")
+            except Exception as err:  # noqa: BLE001 - any compile failure: the torch reads
+                compiled = None
+                say(f"frugalnerf: fused feature read unavailable for {components} channels "
+                    f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}): reading the planes "
+                    f"with torch")
+            _state[key] = compiled
     return _state[key]
 
 

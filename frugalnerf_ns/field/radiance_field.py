@@ -323,6 +323,8 @@ class FrugalNeRFField(nn.Module):
             if self._channels_last.get(key, (None,))[0] != current:
                 self._channels_last[key] = (current, fused_kernels.channels_last(*self.appearance_grid.scale_views(stride)))
             products = fused_kernels.vm_features(kernels, self._channels_last[key][1], coords)
+            if products is None:
+                return self.color(positions, directions, scale)
             if low:  # the basis too: the MLP rounds its inputs to bfloat16 anyway (~0.07 s less a fern frame)
                 features = F.linear(products.to(torch.bfloat16), self.appearance_basis.weight.to(torch.bfloat16))
             else:
