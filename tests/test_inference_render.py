@@ -305,8 +305,11 @@ def test_the_group_bounds_volumes_are_the_max_pool_definitions():
     # A baked field keeps its undilated volumes and the last few dilations.
     field = hollow_field("relu", True)
     baked = field.baked_density(0)
-    for r in range(1, density.DILATIONS_KEPT + 3):
+    first = baked._dilated_occupancy("cells in mask", (1, 1, 2))
+    for r in range(2, density.DILATIONS_KEPT + 3):
         volume = baked._dilated_occupancy("cells in mask", (r, 1, 2))
         assert volume.dtype == torch.bool and volume.numel() == int(torch.tensor(baked.grid.shape[2:]).sub(1).prod())
-    assert len([k for k in baked._dilated if k[0] != "base"]) == density.DILATIONS_KEPT
+        assert baked._dilated_occupancy("cells in mask", (1, 1, 2)) is first  # used each time: kept
+    kept = [k for k in baked._dilated if k[0] != "base"]
+    assert len(kept) == density.DILATIONS_KEPT and ("cells in mask", (2, 1, 2)) not in kept
     assert ("base", "cells in mask") in baked._dilated

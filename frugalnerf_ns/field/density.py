@@ -22,8 +22,8 @@ def activate_density(raw: Tensor, activation: DensityActivation, softplus_shift:
     return F.softplus(raw + softplus_shift)
 
 
-DILATIONS_KEPT = 4
-"""Dilated volumes a ``BakedDensity`` keeps (per radius; its undilated volumes are kept apart)."""
+DILATIONS_KEPT = 8
+"""Dilated volumes a ``BakedDensity`` keeps, the most recently used (per radius; its undilated volumes apart)."""
 
 
 def any_corner(nodes: Bool[Tensor, "z y x"]) -> Bool[Tensor, "z1 y1 x1"]:
@@ -103,24 +103,27 @@ class BakedDensity:
         and have a corner in the mask (for a mask on the grid's own nodes: a point's nearest mask voxel is one
         of its cell's corners)."""
         key = (which, radius)
-        if key not in self._dilated:
-            if ("base", which) not in self._dilated:
-                if which in ("cells", "cells in mask"):
-                    volume = any_corner(activate_density(self.grid, self.activation)[0, 0] > 0)
-                    if which == "cells in mask":  # and a corner's mask voxel (the nearest one to any point of the cell)
-                        volume &= any_corner(self.mask[0, 0] > 0)  # type: ignore[index]
-                else:
-                    volume = self.mask[0, 0] > 0  # type: ignore[index]
-                self._dilated[("base", which)] = volume
-            volume = self._dilated[("base", which)]
-            for axis, r in enumerate(radius):
-                volume = dilate_along(volume, axis, r)
-            # A frame's directions set the radii, so a video meets many: keep the last few (a recompute is
-            # a few passes over a byte per entry).
-            dilated = [k for k in list(self._dilated) if k[0] != "base"]  # a copy: another thread may render too
-            for old in dilated[: max(0, len(dilated) - DILATIONS_KEPT + 1)]:
-                self._dilated.pop(old, None)
-            self._dilated[key] = volume.reshape(-1)
+        kept = self._dilated.pop(key, None)
+        if kept is not None:
+            self._dilated[key] = kept  # the most recently used last: what the bound below keeps
+            return kept
+        if ("base", which) not in self._dilated:
+            if which in ("cells", "cells in mask"):
+                volume = any_corner(activate_density(self.grid, self.activation)[0, 0] > 0)
+                if which == "cells in mask":  # and a corner's mask voxel (the nearest one to any point of the cell)
+                    volume &= any_corner(self.mask[0, 0] > 0)  # type: ignore[index]
+            else:
+                volume = self.mask[0, 0] > 0  # type: ignore[index]
+            self._dilated[("base", which)] = volume
+        volume = self._dilated[("base", which)]
+        for axis, r in enumerate(radius):
+            volume = dilate_along(volume, axis, r)
+        # A frame's directions set the radii, so a video meets many: keep the last few used (a recompute is a
+        # few passes over a byte per entry, ~30-50 ms on a 257^3 grid).
+        dilated = [k for k in list(self._dilated) if k[0] != "base"]  # a copy: another thread may render too
+        for old in dilated[: max(0, len(dilated) - DILATIONS_KEPT + 1)]:
+            self._dilated.pop(old, None)
+        self._dilated[key] = volume.reshape(-1)
         return self._dilated[key]
 
     @staticmethod
