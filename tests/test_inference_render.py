@@ -301,7 +301,8 @@ def test_the_group_bounds_volumes_are_the_max_pool_definitions():
             if radius <= 6:
                 assert torch.equal(density.dilate_along(nodes, axis, radius), expected)
             else:
-                assert torch.equal(density.dilate_along(nodes, axis, radius), nodes.any(dim=axis, keepdim=True).expand_as(nodes))
+                whole_line = nodes.any(dim=axis, keepdim=True).expand_as(nodes)
+                assert torch.equal(density.dilate_along(nodes, axis, radius), whole_line)
     # A baked field keeps its undilated volumes and the last few dilations.
     field = hollow_field("relu", True)
     baked = field.baked_density(0)

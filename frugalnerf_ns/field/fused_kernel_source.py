@@ -1,7 +1,8 @@
 """The fused kernels' source (NVIDIA Warp), apart from the code that loads and launches them
 (``fused_kernels``): ``density_march`` (the inference marcher's density pass, one thread per ray),
 ``outer_composite`` (the space beyond an object's box) and, per component counts, ``vm_features`` (appearance
-features read from channels-last planes and lines: ``define_vm_features``). Each mirrors a torch function that stays the reference it is tested against."""
+features read from channels-last planes and lines: ``define_vm_features``). Each mirrors a torch function that
+stays the reference it is tested against."""
 
 # No ``from __future__ import annotations``: Warp reads the kernels' annotations, and evaluated at definition they
 # may name the closures' vector types (``define_vm_features``).
