@@ -305,6 +305,27 @@ def test_a_march_in_blocks_on_every_core_and_colours_in_parts_give_one_launchs_p
 
 
 @needs_warp
+def test_the_colour_parts_come_in_few_row_counts_and_give_the_unpadded_pixels(monkeypatch):
+    from frugalnerf_ns.model import rendering
+
+    field = opaque_field(mask=True)
+    origins, directions = rays(3000, seed=11)
+    monkeypatch.setattr(rendering, "SHADE_ROWS", 1000)
+    monkeypatch.setattr(rendering, "SHADE_ROW_STEP", 1)  # no padding: the reference
+    unpadded = render(field, 0, wp, origins, directions)
+    monkeypatch.setattr(rendering, "SHADE_ROW_STEP", 96)
+    counts = []
+    shade = FrugalNeRFField.inference_color
+    monkeypatch.setattr(FrugalNeRFField, "inference_color",
+                        lambda self, p, *a, **k: counts.append(p.shape[0]) or shade(self, p, *a, **k))
+    padded = render(field, 0, wp, origins, directions)
+    assert len(counts) > 2 and all(c == 1000 for c in counts[:-1]) and counts[-1] % 96 == 0
+    assert counts[-1] != 1000  # a last part of its own, padded (this scene's shaded samples are not a round number)
+    assert torch.equal(padded.accumulation, unpadded.accumulation) and torch.equal(padded.depth, unpadded.depth)
+    assert torch.allclose(padded.rgb, unpadded.rgb, atol=1e-6) and float(padded.rgb.std()) > 0.01
+
+
+@needs_warp
 def test_feature_reads_and_the_outer_space_split_over_the_cores_equal_one_launch(monkeypatch):
     from frugalnerf_ns.field.outer_space import OuterSpace
 

@@ -150,6 +150,9 @@ SHADE_ROWS = 1 << 15
 hidden layers of this many rows at once: ~30 MB at the CPU presets' sizes; parts of 128 k rows ran the colour MLP
 ~1.9x slower, their intermediate tensors no longer in the cache)."""
 
+SHADE_ROW_STEP = 1 << 12
+"""The row counts a frame's colour parts come in (``SHADE_ROWS``, or its last part padded to a multiple of this)."""
+
 
 def render_in_chunks(model, bundle, rays_per_chunk: int) -> Dict[str, Tensor]:
     """What nerfstudio's ``Model.get_outputs_for_camera_ray_bundle`` does, with the caller's chunk size (not the
@@ -246,8 +249,15 @@ def render_scale_inference(
         # The shaded samples' colours in parts: a large chunk's features and MLP layers would not fit otherwise.
         for first in range(0, fused.rays.numel(), SHADE_ROWS):
             rows, t = fused.rays[first : first + SHADE_ROWS], fused.t[first : first + SHADE_ROWS].to(compute)
-            positions = o[rows] + d[rows] * t[:, None]
-            colors = field_.inference_color(positions, d[rows], scale, kernels).to(compute)
+            count = rows.numel()
+            # The last part padded (its last sample repeated) to a multiple of SHADE_ROW_STEP rows: oneDNN keeps
+            # a compiled matrix product per row count, and a frame's last part had a count of its own (a video's
+            # resident memory grew ~4 MB a frame).
+            shape = min(SHADE_ROWS, -(-count // SHADE_ROW_STEP) * SHADE_ROW_STEP)
+            padded = torch.cat([rows, rows[-1:].expand(shape - count)]) if shape > count else rows
+            t = torch.cat([t, t[-1:].expand(shape - count)]) if shape > count else t
+            positions = o[padded] + d[padded] * t[:, None]
+            colors = field_.inference_color(positions, d[padded], scale, kernels)[:count].to(compute)
             rgb.index_add_(0, rows, colors * fused.weights[first : first + SHADE_ROWS].to(compute)[:, None])
         sums[ids, 2:5] = rgb
         return _pixels(sums, segments, background, compute)
