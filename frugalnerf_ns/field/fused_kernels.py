@@ -321,12 +321,13 @@ def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Optional[Te
     is read on its own, so the parts give the rows one launch gives). None where the kernel for these component
     counts does not compile (said once; the caller reads the planes with torch)."""
     wp = fused.wp
-    compiled = _feature_kernel(fused, tuple(t[0].shape[1] for t in tables))
+    components = tuple(t[0].shape[1] for t in tables)
+    compiled = _feature_kernel(fused, components)
     if compiled is None:
         return None
     kernel, vectors, row = compiled
     n = coords.shape[0]
-    out = torch.empty(n, row._length_, dtype=torch.float32)
+    out = torch.empty(n, sum(components), dtype=torch.float32)
     coords = coords.to(torch.float32).contiguous()
     shared = [x for (plane, width, height, line), vector in zip(tables, vectors)
               for x in (wp.from_torch(plane, dtype=vector), width, height, wp.from_torch(line, dtype=vector))]
