@@ -32,6 +32,43 @@ def test_edge_weights_are_detached():
     assert appearance.grad is None and density.grad is not None
 
 
+
+def _views_tv(planes, lines, plane_weight, line_weight, edge_planes, strides, factors):
+    """grid_tv_loss's definition through autograd: total_variation of each stride's slice views, summed."""
+    loss = planes[0].new_zeros(())
+    for stride, factor in zip(strides, factors):
+        for i, plane in enumerate(planes):
+            edges = None if edge_planes is None else losses.edge_weights_from(edge_planes[i][:, :, ::stride, ::stride])
+            loss = loss + factor * plane_weight * losses.total_variation(plane[:, :, ::stride, ::stride], edges)
+        for line in lines:
+            loss = loss + factor * line_weight * losses.total_variation(line[:, :, ::stride, :])
+    return loss
+
+
+@pytest.mark.parametrize("edges", [False, True])
+@pytest.mark.parametrize("dtype, tolerance", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_strided_grid_tv_equals_autograd_through_the_views(edges, dtype, tolerance):
+    """grid_tv_loss over several strides (one full-size gradient per tensor) gives total_variation's value and
+    gradients of every stride's view, with and without edge weights; sizes the strides do not divide, a plane one
+    entry high and a line of one entry."""
+    torch.manual_seed(1)
+    shapes = [(1, 5, 37, 29), (1, 3, 1, 37), (1, 2, 21, 29)]
+    planes = [torch.randn(*shape, dtype=dtype, requires_grad=True) for shape in shapes]
+    lines = [torch.randn(1, c, n, 1, dtype=dtype, requires_grad=True) for c, n in ((5, 21), (3, 1), (2, 37))]
+    edge_planes = [torch.randn(1, 4, *shape[2:], dtype=dtype) for shape in shapes] if edges else None
+    strides, factors = [1, 4, 16], [1.0, 1 / 16, 1 / 256]
+    reference = _views_tv(planes, lines, 0.01, 1e-4, edge_planes, strides, factors)
+    # The one-entry line has no difference: the reference leaves it out of the graph, ours gives it zeros.
+    expected = [g if g is not None else torch.zeros_like(t)
+                for g, t in zip(torch.autograd.grad(reference, planes + lines, allow_unused=True), planes + lines)]
+    ours = losses.grid_tv_loss(planes, lines, 0.01, 1e-4, edge_planes=edge_planes, strides=strides, stride_weights=factors)
+    got = torch.autograd.grad(ours, planes + lines)
+    assert abs(float(ours - reference)) <= tolerance * abs(float(reference))
+    for a, b in zip(got, expected):
+        assert float((a - b).abs().max()) <= tolerance * float(b.abs().max())
+    assert float(expected[0].abs().max()) > 0
+
+
 def test_density_l1():
     value = losses.density_l1_loss([torch.tensor([[-1.0, 1.0]])], [torch.tensor([[2.0]])])
     assert torch.allclose(value, torch.tensor(3.0))

@@ -353,6 +353,37 @@ def test_baked_density_follows_an_optimiser_step_and_a_resize():
         assert torch.allclose(field.occupied_density(points), density_where_inside(field, points), atol=1e-5)
 
 
+
+@pytest.mark.parametrize("stride", [1, 3, 4])
+@pytest.mark.parametrize("shape", [(1, 5, 13, 10), (1, 3, 7, 1), (1, 2, 1, 9)])
+def test_strided_reads_add_their_gradient_into_the_full_tensor(shape, stride):
+    """sample_plane / sample_line with a stride read the full tensor's stride view (values and gradients equal to
+    grid_sample on the view, its backward through the view's slicing), sizes that the stride does not divide."""
+    from frugalnerf_ns.field.tensorial import sample_line, sample_plane
+
+    torch.manual_seed(stride)
+    full = torch.randn(*shape, dtype=torch.float64, requires_grad=True)
+    line = torch.randn(1, shape[1], shape[2], 1, dtype=torch.float64, requires_grad=True)
+    coords = torch.cat([torch.rand(300, 2, dtype=torch.float64) * 2.4 - 1.2,
+                        torch.tensor([[-1.0, -1.0], [1.0, 1.0], [1.0, -1.0], [0.0, 1.0]], dtype=torch.float64)])
+    weights = torch.randn(2, shape[1], len(coords), dtype=torch.float64)
+    ours = (sample_plane(full, coords[:, 0], coords[:, 1], stride), sample_line(line, coords[:, 1], stride))
+    sum((o * w).sum() for o, w in zip(ours, weights)).backward()
+    ours_grads, full.grad, line.grad = (full.grad.clone(), line.grad.clone()), None, None
+    plane_view, line_view = full[:, :, ::stride, ::stride], line[:, :, ::stride, :]
+    reference = (F.grid_sample(plane_view, coords.view(1, -1, 1, 2), mode="bilinear", padding_mode="border",
+                               align_corners=True).view(shape[1], -1),
+                 F.grid_sample(line_view, torch.stack([torch.zeros_like(coords[:, 1]), coords[:, 1]], -1).view(1, -1, 1, 2),
+                               mode="bilinear", padding_mode="border", align_corners=True).view(shape[1], -1))
+    sum((r * w).sum() for r, w in zip(reference, weights)).backward()
+    for a, b in zip(ours, reference):
+        assert torch.allclose(a, b, atol=1e-12)
+    for a, b in zip(ours_grads, (full.grad, line.grad)):
+        assert torch.allclose(a, b, atol=1e-12)
+    if stride > 1 and shape[2] > 1:  # entries between the view's rows get nothing
+        assert ours_grads[0][:, :, 1::stride].abs().max() == 0 and ours_grads[1][:, :, 1::stride].abs().max() == 0
+
+
 @pytest.mark.parametrize("channels, length", [(5, 9), (3, 2), (2, 1)])
 def test_cpu_line_reads_match_grid_sample_values_and_gradients(channels, length):
     """A line's two-corner read and gradient (sample_line) equal grid_sample's on the [1, C, L, 1] tensor."""

@@ -58,27 +58,35 @@ def _axis_corners(x: Tensor, length: int):
     return low, (low + 1).clamp(max=length - 1), weight
 
 
-def _corners(x: Tensor, y: Tensor, height: int, width: int):
-    """Corner indices and weights of bilinear interpolation with align_corners=True and border padding."""
+def _corners(x: Tensor, y: Tensor, height: int, width: int, stride: int = 1, row_length: Optional[int] = None):
+    """Corner indices and weights of bilinear interpolation with align_corners=True and border padding on a
+    ``height`` x ``width`` grid, the indices flat in a tensor whose rows hold ``row_length`` entries (default
+    ``width``) where the grid is its every ``stride``-th row and column."""
     (x0, x1, wx), (y0, y1, wy) = _axis_corners(x, width), _axis_corners(y, height)
-    return ((y0 * width + x0, (1 - wx) * (1 - wy)), (y0 * width + x1, wx * (1 - wy)),
-            (y1 * width + x0, (1 - wx) * wy), (y1 * width + x1, wx * wy))
+    if stride != 1:
+        x0, x1, y0, y1 = x0 * stride, x1 * stride, y0 * stride, y1 * stride
+    row = width if row_length is None else row_length
+    return ((y0 * row + x0, (1 - wx) * (1 - wy)), (y0 * row + x1, wx * (1 - wy)),
+            (y1 * row + x0, (1 - wx) * wy), (y1 * row + x1, wx * wy))
 
 
 class _BilinearSampleCPU(torch.autograd.Function):
-    """grid_sample's forward, and its input gradient as four index_add_ calls.
+    """grid_sample's forward on a plane's stride-s view, and the full plane's gradient as four index_add_ calls.
 
     torch's CPU grid_sample backward parallelises over the batch, which is 1 for a grid's plane, and was
     the largest single cost of a training step (frugalnerf-bench profile); index_add_ over the four corners
-    computes the same gradient (to float rounding) about 2.4x faster on 2 cores.
+    computes the same gradient (to float rounding) about 2.4x faster on 2 cores. The corners are added at their
+    place in the full plane (the view's index times the stride): autograd's backward of the strided view would
+    zero-fill a full-size gradient and copy the view's into it, per plane, scale and step.
     """
 
     @staticmethod
-    def forward(ctx, plane: Tensor, x: Tensor, y: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, plane: Tensor, x: Tensor, y: Tensor, stride: int) -> Tensor:  # type: ignore[override]
+        view = plane[:, :, ::stride, ::stride]
         grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2)
-        out = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        out = F.grid_sample(view, grid, mode="bilinear", padding_mode="border", align_corners=True)
         ctx.save_for_backward(x, y)
-        ctx.plane_shape, ctx.plane_dtype = plane.shape, plane.dtype
+        ctx.plane_shape, ctx.plane_dtype, ctx.view_shape, ctx.stride = plane.shape, plane.dtype, view.shape, stride
         return out.view(plane.shape[1], -1)
 
     @staticmethod
@@ -86,28 +94,36 @@ class _BilinearSampleCPU(torch.autograd.Function):
         x, y = ctx.saved_tensors
         _, channels, height, width = ctx.plane_shape
         accumulated = torch.zeros(channels, height * width, dtype=grad.dtype, device=grad.device)
-        for index, weight in _corners(x, y, height, width):
+        view_height, view_width = ctx.view_shape[2:]
+        for index, weight in _corners(x, y, view_height, view_width, ctx.stride, width):
             accumulated.index_add_(1, index, grad * weight.to(grad.dtype))
-        return accumulated.view(1, channels, height, width).to(ctx.plane_dtype), None, None
+        return accumulated.view(1, channels, height, width).to(ctx.plane_dtype), None, None, None
 
 
-def sample_plane(plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Float[Tensor, " n"]) -> Float[Tensor, "c n"]:
-    """Bilinear read of a [1, C, H, W] tensor at n points, x along the width and y along the height in
-    [-1, 1] (align_corners=True, border padding): F.grid_sample, with a faster backward on the CPU."""
+def sample_plane(
+    plane: Float[Tensor, "1 c h w"], x: Float[Tensor, " n"], y: Float[Tensor, " n"], stride: int = 1
+) -> Float[Tensor, "c n"]:
+    """Bilinear read of a [1, C, H, W] tensor's stride-``stride`` view (every stride-th row and column) at n points,
+    x along the view's width and y along its height in [-1, 1] (align_corners=True, border padding): F.grid_sample
+    on the view, with a faster backward on the CPU."""
     if plane.is_cuda or x.requires_grad or y.requires_grad or not torch.is_grad_enabled():
         grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2)
-        return F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=True).view(plane.shape[1], -1)
-    return _BilinearSampleCPU.apply(plane, x, y)
+        view = plane[:, :, ::stride, ::stride]
+        return F.grid_sample(view, grid, mode="bilinear", padding_mode="border", align_corners=True).view(plane.shape[1], -1)
+    return _BilinearSampleCPU.apply(plane, x, y, stride)
 
 
 class _LinearSampleCPU(torch.autograd.Function):
     """A line's linear read as two gathers, its gradient as two index_add_ calls: grid_sample on the [1, C, L, 1]
-    tensor reads four corners of which two (the zero-width axis) carry no weight, and its backward adds four."""
+    tensor reads four corners of which two (the zero-width axis) carry no weight, and its backward adds four. A
+    stride-s view's entries are read and added at their place in the full line (as ``_BilinearSampleCPU``)."""
 
     @staticmethod
-    def forward(ctx, line: Tensor, y: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, line: Tensor, y: Tensor, stride: int) -> Tensor:  # type: ignore[override]
         values = line[0, :, :, 0]
-        low, high, weight = _axis_corners(y, values.shape[1])
+        view_length = strided_length(values.shape[1], stride)
+        low, high, weight = _axis_corners(y, view_length)
+        low, high = low * stride, high * stride
         ctx.save_for_backward(low, high, weight)
         ctx.line_shape, ctx.line_dtype = line.shape, line.dtype
         return torch.lerp(values.index_select(1, low), values.index_select(1, high), weight.to(values.dtype))
@@ -121,15 +137,15 @@ class _LinearSampleCPU(torch.autograd.Function):
         accumulated = torch.zeros(channels, length, dtype=grad.dtype, device=grad.device)
         accumulated.index_add_(1, low, grad - far)
         accumulated.index_add_(1, high, far)
-        return accumulated.view(1, channels, length, 1).to(ctx.line_dtype), None
+        return accumulated.view(1, channels, length, 1).to(ctx.line_dtype), None, None
 
 
-def sample_line(line: Float[Tensor, "1 c l 1"], y: Float[Tensor, " n"]) -> Float[Tensor, "c n"]:
-    """Linear read of a [1, C, L, 1] line at n points in [-1, 1] (align_corners=True, border padding): what
-    ``sample_plane(line, 0, y)`` gives, with half its corners on the CPU."""
+def sample_line(line: Float[Tensor, "1 c l 1"], y: Float[Tensor, " n"], stride: int = 1) -> Float[Tensor, "c n"]:
+    """Linear read of a [1, C, L, 1] line's stride-``stride`` view at n points in [-1, 1] (align_corners=True,
+    border padding): what ``sample_plane(view, 0, y)`` gives, with half its corners on the CPU."""
     if line.is_cuda or y.requires_grad or not torch.is_grad_enabled():
-        return sample_plane(line, torch.zeros_like(y), y)
-    return _LinearSampleCPU.apply(line, y)
+        return sample_plane(line[:, :, ::stride, :], torch.zeros_like(y), y)
+    return _LinearSampleCPU.apply(line, y, stride)
 
 
 def _cell_corners(index: Float[Tensor, "n 3"], size: Float[Tensor, "3"]) -> Tuple[Tensor, Tensor]:
@@ -302,12 +318,12 @@ class TensorVMGrid(nn.Module):
         A strided view is read where its entries lie in the full grid (``coords_for_stride``), or, ``stretched``,
         with its first and last entries on the box's faces (the coordinates as they are: what reading the view
         as a tensor of its own over the box gives, as the reference code reads its downsampled tensors)."""
-        planes, lines = self.scale_views(stride)
         mapped = self.view_coords(coords, stride, stretched)
         products = []
-        for plane, line, (a, b), line_axis in zip(planes, lines, PLANE_AXES, LINE_AXES):
-            plane_feat = sample_plane(plane, mapped[:, a], mapped[:, b])
-            line_feat = sample_line(line, mapped[:, line_axis])
+        # The full tensors with the stride: a read's gradient goes straight into the full-size tensor.
+        for plane, line, (a, b), line_axis in zip(self.planes, self.lines, PLANE_AXES, LINE_AXES):
+            plane_feat = sample_plane(plane, mapped[:, a], mapped[:, b], stride)
+            line_feat = sample_line(line, mapped[:, line_axis], stride)
             products.append((plane_feat * line_feat).T)
         return products
 

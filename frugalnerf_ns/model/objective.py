@@ -205,21 +205,24 @@ def eval_losses(
 
 
 def grid_regularizers(cfg: "FrugalNeRFSettings", field_: FrugalNeRFField, decay: float) -> Dict[str, Tensor]:
-    """TV on the appearance grid, edge-aware TV and L1 on the density grid, at every scale's view of them."""
+    """TV on the appearance grid, edge-aware TV and L1 on the density grid, at every scale's view of them (each
+    scale's term weighted by 1 / stride^2)."""
     terms: Dict[str, Tensor] = {}
-    for scale in range(field_.num_scales):
-        stride = field_.stride(scale)
-        factor = 1.0 / stride**2
-        density_planes, density_lines = field_.density_grid.scale_views(stride)
-        app_planes, app_lines = field_.appearance_grid.scale_views(stride)
-        if cfg.appearance_tv_weight > 0:
-            tv = losses.grid_tv_loss(app_planes, app_lines, cfg.tv_plane_weight, cfg.tv_line_weight)
-            _add(terms, "tv_appearance", cfg.appearance_tv_weight * decay * factor * tv)
-        if cfg.density_tv_weight > 0:
-            tv = losses.grid_tv_loss(density_planes, density_lines, cfg.tv_plane_weight, cfg.tv_line_weight, edge_planes=app_planes)
-            _add(terms, "tv_density", cfg.density_tv_weight * decay * factor * tv)
-        if cfg.density_l1_weight > 0:
-            _add(terms, "l1_density", cfg.density_l1_weight * factor * losses.density_l1_loss(density_planes, density_lines))
+    strides = [field_.stride(scale) for scale in range(field_.num_scales)]
+    factors = [1.0 / stride**2 for stride in strides]
+    density, appearance = field_.density_grid, field_.appearance_grid
+    if cfg.appearance_tv_weight > 0:
+        tv = losses.grid_tv_loss(appearance.planes, appearance.lines, cfg.tv_plane_weight, cfg.tv_line_weight,
+                                 strides=strides, stride_weights=factors)
+        terms["tv_appearance"] = cfg.appearance_tv_weight * decay * tv
+    if cfg.density_tv_weight > 0:
+        tv = losses.grid_tv_loss(density.planes, density.lines, cfg.tv_plane_weight, cfg.tv_line_weight,
+                                 edge_planes=appearance.planes, strides=strides, stride_weights=factors)
+        terms["tv_density"] = cfg.density_tv_weight * decay * tv
+    if cfg.density_l1_weight > 0:
+        for scale, stride in enumerate(strides):
+            planes, lines = density.scale_views(stride)
+            _add(terms, "l1_density", cfg.density_l1_weight * factors[scale] * losses.density_l1_loss(planes, lines))
     return terms
 
 
