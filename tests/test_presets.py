@@ -160,3 +160,44 @@ def test_a_checkout_on_pythonpath_reads_its_own_configs(tmp_path):
     assert presets.resolved_overrides("frugalnerf-cpu", presets.load_preset_table())[
         "pipeline.model.initial_voxels"] == yaml.safe_load((root / "configs" / "presets.yaml").read_text())[
         "frugalnerf-cpu"]["overrides"]["pipeline.model.initial_voxels"]
+
+
+def test_adam_is_fused_where_torch_has_the_kernel_and_updates_as_the_unfused_one():
+    """The presets' Adam runs torch's fused update on the CPU (one kernel per tensor): after 30 steps its parameters
+    equal the per-operation update's to float rounding; a config saved before the option existed (no ``fused`` in its
+    state) sets up the same way, and a device without the kernel gets torch's default update."""
+    import torch
+
+    from frugalnerf_ns.run.presets import AdamBetasOptimizerConfig
+
+    torch.manual_seed(0)
+    start = [torch.randn(1, 6, 17, 13), torch.randn(1, 6, 17, 1), torch.randn(40, 9)]
+    finals, kinds = [], []
+    for fused in (False, True):
+        params = [torch.nn.Parameter(t.clone()) for t in start]
+        optimizer = AdamBetasOptimizerConfig(lr=0.02, eps=1e-15, fused=fused).setup(params=params)
+        kinds.append(bool(optimizer.defaults.get("fused")))
+        generator = torch.Generator().manual_seed(1)
+        for _ in range(30):
+            for p in params:
+                p.grad = torch.randn(p.shape, generator=generator)
+            optimizer.step()
+        finals.append([p.detach() for p in params])
+    assert kinds == [False, True]
+    for a, b, s in zip(*finals, start):
+        assert float((a - b).abs().max()) <= 1e-6 * float((a - s).abs().max()) + 1e-7
+        assert float((a - s).abs().max()) > 0.1  # the steps moved the parameters
+
+    old = AdamBetasOptimizerConfig(lr=0.01)
+    del old.__dict__["fused"]  # as PyYAML loads a config.yml written before the field
+    assert old.setup(params=[torch.nn.Parameter(torch.ones(3))]).defaults.get("fused") is True
+
+    class NoFusedKernel(torch.optim.Adam):  # torch's refusal on a device or version without the kernel
+        def __init__(self, params, fused=None, **kwargs):
+            if fused:
+                raise RuntimeError("`fused=True` requires all the params to be floating point Tensors of supported devices")
+            super().__init__(params, **kwargs)
+
+    params = (p for p in [torch.nn.Parameter(torch.ones(3))])  # a generator: the retry must still see the parameters
+    fallback = AdamBetasOptimizerConfig(_target=NoFusedKernel, lr=0.01).setup(params=params)
+    assert not fallback.defaults.get("fused") and len(fallback.param_groups[0]["params"]) == 1
