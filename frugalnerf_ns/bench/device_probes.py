@@ -75,9 +75,9 @@ def count_cpu_path_calls() -> Iterator[Dict[str, int]]:
     counts = {"cpu": 0, "cuda": 0}
     original = tensorial._BilinearSampleCPU.apply
 
-    def counting(plane, x, y):
+    def counting(plane, x, y, *rest):
         counts[plane.device.type] = counts.get(plane.device.type, 0) + 1
-        return original(plane, x, y)
+        return original(plane, x, y, *rest)
 
     tensorial._BilinearSampleCPU.apply = counting  # type: ignore[method-assign]
     try:

@@ -203,7 +203,7 @@ def part_grid_sample(args, device: torch.device, scenes) -> List[Dict[str, Any]]
 
     def index_add_path():
         plane.grad = None
-        _BilinearSampleCPU.apply(plane, x, y).backward(upstream)
+        _BilinearSampleCPU.apply(plane, x, y, 1).backward(upstream)
 
     torch_path()
     reference = plane.grad.clone()
