@@ -32,6 +32,12 @@ def strided_length(resolution: int, stride: int) -> int:
     return math.ceil(resolution / stride)
 
 
+def strided_view(tensor: Float[Tensor, "1 c h w"], stride: int) -> Float[Tensor, "1 c h2 w2"]:
+    """The view of a plane ([1, C, H, W]) or line ([1, C, L, 1]) a lower scale reads: every ``stride``-th entry of
+    its spatial axes (a line's width of 1 is kept). No copy: it shares the full tensor's storage."""
+    return tensor[:, :, ::stride, ::stride] if tensor.shape[-1] > 1 else tensor[:, :, ::stride, :]
+
+
 def coords_for_stride(x: Float[Tensor, "*bs"], resolution: int, stride: int) -> Float[Tensor, "*bs"]:
     """Map a full-grid coordinate in [-1, 1] (align_corners) to the same world point in the strided view.
 
@@ -82,7 +88,7 @@ class _BilinearSampleCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, plane: Tensor, x: Tensor, y: Tensor, stride: int) -> Tensor:  # type: ignore[override]
-        view = plane[:, :, ::stride, ::stride]
+        view = strided_view(plane, stride)
         grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2)
         out = F.grid_sample(view, grid, mode="bilinear", padding_mode="border", align_corners=True)
         ctx.save_for_backward(x, y)
@@ -108,7 +114,7 @@ def sample_plane(
     on the view, with a faster backward on the CPU."""
     if plane.is_cuda or x.requires_grad or y.requires_grad or not torch.is_grad_enabled():
         grid = torch.stack([x, y], dim=-1).view(1, -1, 1, 2)
-        view = plane[:, :, ::stride, ::stride]
+        view = strided_view(plane, stride)
         return F.grid_sample(view, grid, mode="bilinear", padding_mode="border", align_corners=True).view(plane.shape[1], -1)
     return _BilinearSampleCPU.apply(plane, x, y, stride)
 
@@ -144,7 +150,7 @@ def sample_line(line: Float[Tensor, "1 c l 1"], y: Float[Tensor, " n"], stride: 
     """Linear read of a [1, C, L, 1] line's stride-``stride`` view at n points in [-1, 1] (align_corners=True,
     border padding): what ``sample_plane(view, 0, y)`` gives, with half its corners on the CPU."""
     if line.is_cuda or y.requires_grad or not torch.is_grad_enabled():
-        return sample_plane(line[:, :, ::stride, :], torch.zeros_like(y), y)
+        return sample_plane(strided_view(line, stride), torch.zeros_like(y), y)
     return _LinearSampleCPU.apply(line, y, stride)
 
 
@@ -299,9 +305,7 @@ class TensorVMGrid(nn.Module):
 
     def scale_views(self, stride: int) -> Tuple[List[Tensor], List[Tensor]]:
         """Strided views of the planes and lines: they share storage with the full-resolution tensors."""
-        planes = [p[:, :, ::stride, ::stride] for p in self.planes]
-        lines = [line[:, :, ::stride, :] for line in self.lines]
-        return planes, lines
+        return [strided_view(p, stride) for p in self.planes], [strided_view(line, stride) for line in self.lines]
 
     def view_coords(self, coords: Float[Tensor, "n 3"], stride: int = 1, stretched: bool = False) -> Float[Tensor, "n 3"]:
         """Where the strided views of ``plane_line_products`` read full-grid coordinates ``coords``."""

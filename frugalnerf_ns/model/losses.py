@@ -14,6 +14,7 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from frugalnerf_ns.field.tensorial import strided_view
 from frugalnerf_ns.geometry.reprojection import PseudoDepth
 from frugalnerf_ns.scoring.sparse_fit import inverse_depth_term
 
@@ -56,12 +57,6 @@ def edge_weights_from(appearance_plane: Float[Tensor, "1 c h w"]) -> Tuple[Tenso
     dh = (app[:, :, 1:, :] - app[:, :, :-1, :]).abs().mean(dim=1, keepdim=True)
     dw = (app[:, :, :, 1:] - app[:, :, :, :-1]).abs().mean(dim=1, keepdim=True)
     return torch.exp(-dh), torch.exp(-dw)
-
-
-def strided_view(tensor: Float[Tensor, "1 c h w"], stride: int) -> Float[Tensor, "1 c h2 w2"]:
-    """The view of a plane ([1, C, H, W]) or line ([1, C, L, 1]) a lower scale reads: every ``stride``-th entry of
-    its spatial axes (``TensorVMGrid.scale_views``; a line's width of 1 is kept)."""
-    return tensor[:, :, ::stride, ::stride] if tensor.shape[-1] > 1 else tensor[:, :, ::stride, :]
 
 
 class _StridedTotalVariation(torch.autograd.Function):
