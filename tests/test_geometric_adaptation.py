@@ -162,41 +162,59 @@ def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(mo
         assert torch.allclose(skipped_grads[name], grad, rtol=1e-4, atol=1e-5 * scale), name
 
 
-def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(model_and_batch):
+def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(model_and_batch, monkeypatch):
+    """The nodes and the planes read by the fused kernels against the planes read by torch."""
+    from frugalnerf_ns.field import fused_density
+
     model, bundle, batch = model_and_batch
     field = model.field
-    node_sums = []
+    node_sums, fused_reads = [], []
+    fused_read = fused_density.fused_density
+    monkeypatch.setattr(fused_density, "fused_density", lambda *a, **k: fused_reads.append(1) or fused_read(*a, **k))
     node_sum = field.density_grid.node_sum
 
     def counting_node_sum():
         node_sums.append(1)
         return node_sum()
 
-    def step(read):
-        model.config.training_density_read = read
+    def step(read, kernels="torch"):
+        model.config.training_density_read, model.config.kernels = read, kernels
         return _seeded_step(model, bundle, batch)
 
     try:
         field.density_grid.node_sum = counting_node_sum
         nodes, node_losses, node_grads = step("nodes")
         assert len(node_sums) == 1  # one node tensor for the step's three scales
-        planes, plane_losses, plane_grads = step("planes")
+        planes, plane_losses, plane_grads = step("planes")  # the torch reads of the planes: the reference
         assert len(node_sums) == 1
+        assert not fused_reads
+        fast_reads = [step("planes", "warp")] if fused_kernels_compile() else []  # the planes read by the kernels
+        assert len(fused_reads) == (3 if fast_reads else 0)  # every scale's read
     finally:
-        model.config.training_density_read = "nodes"
+        model.config.training_density_read, model.config.kernels = "nodes", "auto"
         del field.density_grid.node_sum
-    assert field._shared_nodes is None  # nothing kept after the step
-    for fast, reference in zip(nodes.scales, planes.scales):
-        assert (reference.densities > 0).any()
-        assert torch.allclose(fast.densities, reference.densities, rtol=1e-5, atol=1e-6)
-        assert torch.allclose(fast.weights, reference.weights, rtol=1e-4, atol=1e-6)
-    for name, value in plane_losses.items():
-        assert node_losses[name] == pytest.approx(value, rel=1e-5, abs=1e-8), name
-    density_names = {name for name in plane_grads if "density_grid" in name}
-    assert len(density_names) == 6 and set(node_grads) == set(plane_grads)
-    for name, grad in plane_grads.items():
-        scale = float(grad.abs().max()) or 1.0
-        assert torch.allclose(node_grads[name], grad, rtol=1e-4, atol=1e-5 * scale), name
+    assert field._shared_nodes is None and field._density_kernels is None  # nothing kept after the step
+    for (fast, fast_losses, fast_grads) in [(nodes, node_losses, node_grads), *fast_reads]:
+        for ours, reference in zip(fast.scales, planes.scales):
+            assert (reference.densities > 0).any()
+            assert torch.allclose(ours.densities, reference.densities, rtol=1e-5, atol=1e-6)
+            assert torch.allclose(ours.weights, reference.weights, rtol=1e-4, atol=1e-6)
+        for name, value in plane_losses.items():
+            assert fast_losses[name] == pytest.approx(value, rel=1e-5, abs=1e-8), name
+        density_names = {name for name in plane_grads if "density_grid" in name}
+        assert len(density_names) == 6 and set(fast_grads) == set(plane_grads)
+        for name, grad in plane_grads.items():
+            scale = float(grad.abs().max()) or 1.0
+            assert torch.allclose(fast_grads[name], grad, rtol=1e-4, atol=1e-5 * scale), name
+
+
+def fused_kernels_compile() -> bool:
+    """Warp is installed here (a dependency; where it is, its kernels must compile: an error fails the test)."""
+    try:
+        import warp  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def test_geo_loss_off_when_its_weight_is_zero(model_and_batch):

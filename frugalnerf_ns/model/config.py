@@ -79,8 +79,9 @@ class FrugalNeRFSettings(ModelConfig):
     1e-4 (model/rendering.py, ``render_scale_inference``); False renders with the training marcher."""
     kernels: Literal["auto", "warp", "torch"] = "auto"
     """Fused kernels (NVIDIA Warp, compiled at first use) for rendering without gradients on the CPU: the density
-    march, the appearance reads of a grid too large to bake and the space beyond the box. torch: the reference
-    path. auto: Warp where it imports and compiles, else torch with one line. Training is unaffected."""
+    march, the appearance reads of a grid too large to bake and the space beyond the box; and in training on the
+    CPU, the density reads of a grid that reads its planes (above 256^3 nodes, ``training_density_read``) with their
+    backward. torch: the reference path. auto: Warp where it imports and compiles, else torch with one line."""
     mlp_hidden_dim: int = 128
     """Width of the colour MLP."""
     feature_pe: int = 0

@@ -286,7 +286,9 @@ class FrugalNeRFModel(Model):
         groups = None if groups is None else groups.reshape(-1)
         # A training step reads density from nodes shared by its scales (outside training the marcher bakes them).
         shared_nodes = self.training and not inference and cfg.training_density_read == "nodes"
-        with self.field.shared_density_nodes(shared_nodes):
+        # Where a training step reads the planes (grids above the shared nodes' size), the fused kernels read them.
+        density_kernels = warp_kernels(cfg.kernels, CONSOLE.print) if self.training and not inference else None
+        with self.field.shared_density_nodes(shared_nodes), self.field.fused_density_reads(density_kernels):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
