@@ -79,13 +79,13 @@ def test_a_one_entry_axis_and_no_points():
 
 @needs_warp
 def test_reads_split_over_the_cores_equal_one_launch(monkeypatch):
-    grid, coords = grid_and_points((40, 36, 30), (4, 2, 2), n=40000)
+    grid, coords = grid_and_points((40, 36, 30), (4, 2, 2), n=fused_density.SPLIT_MIN_SAMPLES + 5000)
     weights = torch.randn(coords.shape[0])
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     one_raw, one_grads = fused_read(grid, coords, 2, False, weights)
     one_grads = [g.clone() for g in one_grads]
     monkeypatch.setattr(torch, "get_num_threads", lambda: 3)
-    assert len(fused_kernels._parts(coords.shape[0])) == 3
+    assert len(fused_kernels._parts(coords.shape[0], fused_density.SPLIT_MIN_SAMPLES)) == 3
     raw, grads = fused_read(grid, coords, 2, False, weights)
     assert torch.equal(raw, one_raw)  # each point is read on its own
     for grad, one in zip(grads, one_grads):  # three tables summed: float rounding

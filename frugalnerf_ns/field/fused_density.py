@@ -22,6 +22,11 @@ from frugalnerf_ns.field.fused_kernel_source import define_density_read
 from frugalnerf_ns.field.fused_kernels import WarpKernels, _lock, _parts, _rows, _state, on_every_core
 from frugalnerf_ns.field.tensorial import strided_length
 
+SPLIT_MIN_SAMPLES = 1 << 16
+"""Samples from which a read (and its backward) runs one launch per core. Below it one launch: a fern step's coarsest
+scale (~21,000 samples) split over the pool made the torch operations right after it stall (~11 ms a step in
+``nonzero`` calls on 2 cores), more than the split saved."""
+
 
 def _density_kernels(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print):
     """(forward, backward, vector types) for planes of ``components`` channels, compiled once per process and counts
@@ -78,7 +83,7 @@ class _FusedDensityRead(torch.autograd.Function):
             wp.launch(forward_kernel, dim=b - a, device="cpu", inputs=[
                 wp.from_torch(coords[a:b], dtype=wp.vec3), sizes, rows, stride, *shared, wp.from_torch(out[a:b])])
 
-        on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(n)])
+        on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(n, SPLIT_MIN_SAMPLES)])
         ctx.save_for_backward(coords)
         ctx.tables, ctx.launch_args = tables, (fused, compiled, sizes, rows, stride)
         ctx.shapes = [(t.shape, t.dtype) for t in tensors]
@@ -90,7 +95,7 @@ class _FusedDensityRead(torch.autograd.Function):
         fused, compiled, sizes, rows, stride = ctx.launch_args
         wp, backward_kernel, vectors = fused.wp, compiled[1], compiled[2]
         grad = grad.detach().to(torch.float32).contiguous()
-        parts = _parts(coords.shape[0])
+        parts = _parts(coords.shape[0], SPLIT_MIN_SAMPLES)
         # One set of gradient tables per launch (see the module's docstring), summed below.
         gradients = [torch.zeros(len(parts), *t.shape, dtype=torch.float32) for t in ctx.tables]
         shared = [wp.from_torch(table, dtype=vectors[k // 2]) for k, table in enumerate(ctx.tables)]

@@ -364,8 +364,9 @@ def _feature_kernel(fused: WarpKernels, components: tuple, say: Callable[[str], 
     return _state[key]
 
 
-def _parts(n: int) -> list:
-    """Row ranges [a, b) covering n rows: one per core from ``SPLIT_MIN_ROWS`` rows, else one (none for none)."""
-    parts = max(1, torch.get_num_threads()) if n >= SPLIT_MIN_ROWS else 1
+def _parts(n: int, min_rows: Optional[int] = None) -> list:
+    """Row ranges [a, b) covering n rows: one per core from ``min_rows`` (default ``SPLIT_MIN_ROWS``) rows, else one
+    (none for none)."""
+    parts = max(1, torch.get_num_threads()) if n >= (SPLIT_MIN_ROWS if min_rows is None else min_rows) else 1
     bounds = [n * k // parts for k in range(parts + 1)]
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
