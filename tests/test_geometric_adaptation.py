@@ -188,8 +188,9 @@ def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(mo
         planes, plane_losses, plane_grads = step("planes")  # the torch reads of the planes: the reference
         assert len(node_sums) == 1
         assert not fused_reads
-        fast_reads = [step("planes", "warp")] if fused_kernels_compile() else []  # the planes read by the kernels
-        assert len(fused_reads) == (3 if fast_reads else 0)  # every scale's read
+        # The planes read by the kernels: asked for, and in place of the nodes where the kernels compile.
+        fast_reads = [step("planes", "warp"), step("nodes", "warp")] if fused_kernels_compile() else []
+        assert len(fused_reads) == (6 if fast_reads else 0) and len(node_sums) == 1  # every scale's read, no nodes
     finally:
         model.config.training_density_read, model.config.kernels = "nodes", "auto"
         del field.density_grid.node_sum
