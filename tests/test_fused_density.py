@@ -113,3 +113,34 @@ def test_a_read_that_does_not_compile_falls_back_to_torch_with_one_line(monkeypa
     with field.fused_density_reads(wp):
         assert torch.equal(field.density(points), reference)  # the torch reads, the same numbers
     assert field._density_kernels is None
+
+
+@needs_warp
+def test_a_fields_reads_within_a_block_share_one_copy_of_the_planes_and_a_new_block_sees_new_values():
+    """A training step's forward pass reads the planes' channels-last copies made at its first read; the next step
+    (after the optimiser's update in place: fused Adam does not bump a tensor's version) makes new ones."""
+    from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+
+    torch.manual_seed(3)
+    field = FrugalNeRFField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), (12, 14, 10),
+                            density_components=(3, 2, 2), appearance_components=(2, 2, 2), mlp_hidden_dim=8,
+                            mlp_implementation="torch")
+    optimiser = torch.optim.Adam(field.density_grid.parameters(), lr=0.1, fused=True)
+    points = torch.rand(400, 3) * 2 - 1
+    made = []
+    tables = fused_density._tables
+    for step in range(2):
+        reference = [field.density(points, scale).detach() for scale in range(3)]  # torch: outside the block
+        with field.fused_density_reads(wp):
+            fused_density._tables = lambda *a: made.append(1) or tables(*a)
+            try:
+                densities = [field.density(points, scale) for scale in range(3)]
+            finally:
+                fused_density._tables = tables
+        assert len(made) == step + 1  # one copy per block, for its three scales
+        for ours, expected in zip(densities, reference):
+            assert torch.allclose(ours.detach(), expected, rtol=1e-5, atol=1e-5)
+        sum(d.sum() for d in densities).backward()
+        optimiser.step()
+        optimiser.zero_grad()
+    assert field._density_tables is None

@@ -121,14 +121,15 @@ def test_step_benchmark_times_this_tree_beside_another_in_child_processes(traine
     out = tmp_path / "step.json"
     # --before with this very tree: both children must import the package from the tree they were given.
     tree = Path(step_time.__file__).resolve().parents[2]
-    step_time.main([str(run_dir / "config.yml"), "--before", str(tree), "--steps", "2", "--warmup", "1",
+    step_time.main([str(run_dir / "config.yml"), "--before", str(tree), "--torch-path", "--steps", "2", "--warmup", "1",
                     "--rounds", "1", "--out", str(out)])
     rows = json.loads(out.read_text())["rows"]
     checkpoint = torch.load(next((run_dir / "nerfstudio_models").glob("*.ckpt")), map_location="cpu", weights_only=False)
     grid = checkpoint["pipeline"]["_model.field.density_grid.resolution"].tolist()
-    assert [r["tree"] for r in rows] == ["before", "now"] and all(r["path"] == str(tree) for r in rows)
+    assert [r["tree"] for r in rows] == ["before", "now, torch path", "now"] and all(r["path"] == str(tree) for r in rows)
+    assert [r["kernels"] for r in rows] == ["auto", "torch", "auto"]  # the run's setting, and the torch path asked for
     assert all(r["grid"] == grid and len(r["round_medians"]) == 1 and r["median_s_per_step"] > 0 for r in rows)
-    assert all(r["peak_rss_mib"] > 100 for r in rows) and rows[1]["speedup_of_now"] == 1.0
+    assert all(r["peak_rss_mib"] > 100 for r in rows) and rows[2]["speedup_of_now"] == 1.0
     assert "| before (" in capsys.readouterr().out
 
 

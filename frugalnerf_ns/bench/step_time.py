@@ -1,6 +1,7 @@
 """Seconds per training step of a trained run, this source tree beside an earlier one, from the same checkpoint.
 
-  frugalnerf-bench step <run>/config.yml [--before DIR] [--steps 10] [--rounds 3] [--out outputs/benchmark_step.json]
+  frugalnerf-bench step <run>/config.yml [--before DIR] [--torch-path] [--steps 10] [--rounds 3]
+                                          [--out outputs/benchmark_step.json]
 
 Each measurement is a child process that loads the run's checkpoint (its grid, alpha mask and weights: the
 state at the end of training), seeds torch, runs two warm-up steps and then times ``--steps`` training steps:
@@ -8,8 +9,10 @@ the datamanager's batch, the model's forward, its metrics and losses, backward, 
 (nerfstudio's ``Optimizers`` from the run's config). With ``--before DIR`` (a source tree of an earlier commit,
 e.g. ``git worktree add /tmp/before <rev>``) the same child runs on that tree's package (``PYTHONPATH=DIR``),
 alternating with this tree's, ``--rounds`` times; the table shows medians, the ratio and each tree's peak RSS.
-Both trees draw the same batches and jitter (the same seeds), so they compute the same steps. Run it alone on
-the machine: two processes on 2 cores slow each other several-fold.
+Both trees draw the same batches and jitter (the same seeds), so they compute the same steps. With
+``--torch-path`` this tree is also timed with ``--pipeline.model.kernels torch`` (the reference path the fused
+kernels replace in training), in the same alternation. Run it alone on the machine: two processes on 2 cores slow
+each other several-fold.
 """
 
 from __future__ import annotations
@@ -29,9 +32,10 @@ WORKER_FLAG = "--worker"
 RESULT_PREFIX = "STEP_RESULT "
 
 
-def worker(config: Path, steps: int, warmup: int) -> Dict[str, object]:
+def worker(config: Path, steps: int, warmup: int, kernels: str = "") -> Dict[str, object]:
     """Time ``steps`` training steps of the run in ``config`` (runs in the child, on whichever package
-    ``PYTHONPATH`` names: only nerfstudio's API and the model's nerfstudio methods are used)."""
+    ``PYTHONPATH`` names: only nerfstudio's API and the model's nerfstudio methods are used), with the model's
+    ``kernels`` set to ``kernels`` where given."""
     import torch
     from nerfstudio.engine.optimizers import Optimizers
     from nerfstudio.utils.eval_utils import eval_setup
@@ -41,6 +45,8 @@ def worker(config: Path, steps: int, warmup: int) -> Dict[str, object]:
     trainer_config, pipeline, _, loaded_step = eval_setup(config, test_mode="val")
     pipeline.train()
     model = pipeline.model
+    if kernels:
+        model.config.kernels = kernels
     optimizers = Optimizers(trainer_config.optimizers, model.get_param_groups())
     torch.manual_seed(0)
 
@@ -62,20 +68,22 @@ def worker(config: Path, steps: int, warmup: int) -> Dict[str, object]:
         "package": str(Path(frugalnerf_ns.__file__).parent.parent),
         "loaded_step": loaded_step,
         "grid": [int(r) for r in model.field.density_grid.resolution.tolist()],
+        "kernels": str(getattr(model.config, "kernels", "")),
         "seconds": seconds,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
 
 
-def run_child(tree: Path, config: Path, steps: int, warmup: int) -> Dict[str, object]:
-    """One measurement in a child process on ``tree``'s package."""
+def run_child(tree: Path, config: Path, steps: int, warmup: int, kernels: str = "") -> Dict[str, object]:
+    """One measurement in a child process on ``tree``'s package (``kernels``: the model's setting, "" for the run's)."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     # This file is loaded by path (the other tree may not have it) under a private name: the package it then
     # imports is the one PYTHONPATH names.
     loader = ("import importlib.util, sys; spec = importlib.util.spec_from_file_location('frugalnerf_step_worker', "
               f"{str(Path(__file__).resolve())!r}); module = importlib.util.module_from_spec(spec); "
               "spec.loader.exec_module(module); module.main(sys.argv[1:])")
-    command = [sys.executable, "-c", loader, WORKER_FLAG, str(config.resolve()), "--steps", str(steps), "--warmup", str(warmup)]
+    command = [sys.executable, "-c", loader, WORKER_FLAG, str(config.resolve()), "--steps", str(steps), "--warmup", str(warmup),
+               "--kernels", kernels]
     done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
     lines = [line for line in done.stdout.splitlines() if line.startswith(RESULT_PREFIX)]
     if done.returncode != 0 or not lines:
@@ -101,8 +109,9 @@ def main(argv: Optional[List[str]] = None) -> list:
         parser.add_argument("config", type=Path)
         parser.add_argument("--steps", type=int, required=True)
         parser.add_argument("--warmup", type=int, required=True)
+        parser.add_argument("--kernels", default="")
         args = parser.parse_args(argv[1:])
-        print(RESULT_PREFIX + json.dumps(worker(args.config, args.steps, args.warmup)), flush=True)
+        print(RESULT_PREFIX + json.dumps(worker(args.config, args.steps, args.warmup, args.kernels)), flush=True)
         return []
 
     from frugalnerf_ns.bench.report import markdown_table, write_report
@@ -113,6 +122,8 @@ def main(argv: Optional[List[str]] = None) -> list:
     parser.add_argument("--steps", type=int, default=10, help="timed steps per measurement")
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps first")
     parser.add_argument("--rounds", type=int, default=3, help="measurements per tree (alternating with --before)")
+    parser.add_argument("--torch-path", action="store_true",
+                        help="also time this tree with --pipeline.model.kernels torch (the fused kernels' reference)")
     parser.add_argument("--out", type=Path, default=Path("outputs/benchmark_step.json"))
     args = parser.parse_args(argv)
     if not args.config.is_file():
@@ -120,19 +131,20 @@ def main(argv: Optional[List[str]] = None) -> list:
     if args.before is not None and not (args.before / "frugalnerf_ns" / "__init__.py").is_file():
         sys.exit(f"benchmark_step: error: --before {args.before}: no frugalnerf_ns package there (pass a source tree)")
     this_tree = Path(__file__).resolve().parents[2]
-    trees = ([("before", args.before)] if args.before is not None else []) + [("now", this_tree)]
-    results: Dict[str, List[Dict[str, object]]] = {name: [] for name, _ in trees}
+    trees = (([("before", args.before, "")] if args.before is not None else [])
+             + ([("now, torch path", this_tree, "torch")] if args.torch_path else []) + [("now", this_tree, "")])
+    results: Dict[str, List[Dict[str, object]]] = {name: [] for name, _, _ in trees}
     for _ in range(args.rounds):
-        for name, tree in trees:
-            results[name].append(run_child(tree, args.config, args.steps, args.warmup))
+        for name, tree, kernels in trees:
+            results[name].append(run_child(tree, args.config, args.steps, args.warmup, kernels))
     rows = []
-    for name, tree in trees:
+    for name, tree, _ in trees:
         medians = [statistics.median(r["seconds"]) for r in results[name]]  # type: ignore[arg-type]
         rows.append({
             "tree": name, "commit": git_commit(tree), "path": str(tree),
             "median_s_per_step": statistics.median(medians), "round_medians": medians,
             "peak_rss_mib": max(float(r["peak_rss_mib"]) for r in results[name]),  # type: ignore[arg-type]
-            "grid": results[name][0]["grid"],
+            "grid": results[name][0]["grid"], "kernels": results[name][0].get("kernels", ""),
         })
     now = rows[-1]["median_s_per_step"]
     for row in rows:

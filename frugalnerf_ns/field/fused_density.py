@@ -19,7 +19,8 @@ import torch
 from torch import Tensor
 
 from frugalnerf_ns.field.fused_kernel_source import define_density_read
-from frugalnerf_ns.field.fused_kernels import WarpKernels, _lock, _parts, _rows, _state, on_every_core
+from frugalnerf_ns.field import fused_kernels
+from frugalnerf_ns.field.fused_kernels import WarpKernels, _lock, _parts, _rows, on_every_core
 from frugalnerf_ns.field.tensorial import strided_length
 
 SPLIT_MIN_SAMPLES = 1 << 16
@@ -33,7 +34,8 @@ def _density_kernels(fused: WarpKernels, components: tuple, say: Callable[[str],
     (Warp caches the build on disk); None, said once, where they do not compile."""
     key = ("density_read", components)
     with _lock:
-        if key not in _state:
+        state = fused_kernels._state  # the module's (a test may swap it)
+        if key not in state:
             try:
                 start = time.perf_counter()
                 compiled = define_density_read(fused.wp, components)
@@ -47,8 +49,8 @@ def _density_kernels(fused: WarpKernels, components: tuple, say: Callable[[str],
                 say(f"frugalnerf: fused training density read unavailable for {components} channels "
                     f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}): reading the planes "
                     f"with torch")
-            _state[key] = compiled
-    return _state[key]
+            state[key] = compiled
+        return state[key]
 
 
 def _tables(planes: Sequence[Tensor], lines: Sequence[Tensor]) -> List[Tensor]:
@@ -65,12 +67,17 @@ class _FusedDensityRead(torch.autograd.Function):
     """Density (before its activation) at grid coordinates already mapped into a stride's views (``view_coords``)."""
 
     @staticmethod
-    def forward(ctx, coords: Tensor, stride: int, fused: WarpKernels, compiled, *tensors: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(ctx, coords: Tensor, stride: int, fused: WarpKernels, compiled, kept: Optional[dict],  # type: ignore[override]
+                *tensors: Tensor) -> Tensor:
         planes, lines = tensors[:3], tensors[3:]
         wp = fused.wp
         forward_kernel, _, vectors = compiled
         coords = coords.detach().to(torch.float32).contiguous()
-        tables = _tables(planes, lines)
+        tables = kept.get("tables") if kept is not None else None
+        if tables is None:
+            tables = _tables(planes, lines)
+            if kept is not None:
+                kept["tables"] = tables
         # PLANE_AXES: XY is [1, c, Y, X], XZ [1, c, Z, X]: the full grid's X, Y, Z entries and the planes' widths.
         full = (planes[0].shape[3], planes[0].shape[2], planes[1].shape[2])
         sizes = wp.vec3i(*[strided_length(n, stride) for n in full])
@@ -113,15 +120,17 @@ class _FusedDensityRead(torch.autograd.Function):
         for (shape, dtype), g in zip(ctx.shapes, [*gradients[0::2], *gradients[1::2]]):
             g = g.sum(dim=0) if g.shape[0] > 1 else g[0]
             results.append(g.T.reshape(shape).to(dtype))
-        return (None, None, None, None, *results)
+        return (None, None, None, None, None, *results)
 
 
-def fused_density(fused: WarpKernels, grid, coords: Tensor, stride: int,
-                  say: Callable[[str], None] = print) -> Optional[Tensor]:
+def fused_density(fused: WarpKernels, grid, coords: Tensor, stride: int, say: Callable[[str], None] = print,
+                  kept: Optional[dict] = None) -> Optional[Tensor]:
     """``sum(grid.plane_line_products(...))`` over planes and channels at coordinates ``coords`` already mapped into
     the stride's views (``TensorVMGrid.view_coords``), with its gradient into the planes and lines, on the CPU; None
-    where the kernels do not compile for these component counts (the caller reads with torch)."""
+    where the kernels do not compile for these component counts (the caller reads with torch). ``kept``: a dict
+    that keeps the planes' channels-last copies for the next read, for reads of unchanged tensors only (a training
+    step's forward pass: its scales read the same planes; the caller drops it before the tensors change)."""
     compiled = _density_kernels(fused, tuple(grid.components), say)
     if compiled is None:
         return None
-    return _FusedDensityRead.apply(coords, stride, fused, compiled, *grid.planes, *grid.lines)
+    return _FusedDensityRead.apply(coords, stride, fused, compiled, kept, *grid.planes, *grid.lines)

@@ -152,6 +152,7 @@ class FrugalNeRFField(nn.Module):
         self._shared_nodes: Optional[List[Optional[Tensor]]] = None
         # Inside ``fused_density_reads``: the fused kernels that read the planes' density (None: torch).
         self._density_kernels = None
+        self._density_tables: Optional[dict] = None  # and the planes' copies its reads share
 
     # ---- geometry of the grid -------------------------------------------------------------------------
     def stride(self, scale: int) -> int:
@@ -222,8 +223,8 @@ class FrugalNeRFField(nn.Module):
                 from frugalnerf_ns.field.fused_density import fused_density
 
                 stride = self.stride(scale)
-                raw = fused_density(fused, self.density_grid, self.density_grid.view_coords(coords, stride,
-                                                                                              self.stretched), stride)
+                raw = fused_density(fused, self.density_grid, self.density_grid.view_coords(coords, stride, self.stretched),
+                                    stride, kept=self._density_tables)
             if raw is None:
                 products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
                 raw = sum(p.sum(dim=-1) for p in products)
@@ -233,12 +234,15 @@ class FrugalNeRFField(nn.Module):
     def fused_density_reads(self, kernels) -> Iterator[None]:
         """Within the block, ``density`` reads the planes (where it does not read shared nodes) with the fused
         kernels ``kernels`` (``fused_kernels.warp_kernels``; None: torch) on the CPU, with their backward
-        (``fused_density``): the same values and gradients to float rounding, ~2.8x faster on 2 cores."""
-        previous, self._density_kernels = self._density_kernels, kernels
+        (``fused_density``): the same values and gradients to float rounding, ~2.8x faster on 2 cores. The block's
+        reads share the planes' channels-last copies, made at the first: nothing may change the grid within it (a
+        training step's forward pass)."""
+        previous = self._density_kernels, self._density_tables
+        self._density_kernels, self._density_tables = kernels, {}
         try:
             yield
         finally:
-            self._density_kernels = previous
+            self._density_kernels, self._density_tables = previous
 
     @contextlib.contextmanager
     def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:
