@@ -97,25 +97,29 @@ def render_scale(
     t, valid = march_steps(segments, step, reachable_slots(segments, step, num_samples), jitter=jitter)
     positions = origins[:, None, :] + directions[:, None, :] * t[..., None]
     valid = valid & field_.inside(positions)
+    # Each mask's slots found once, as flat indices (row-major: the order boolean indexing gives), and read and
+    # written through them: boolean indexing finds them again at every read and write, forward and backward.
+    flat_positions = positions.reshape(-1, 3)
+    slots = valid.reshape(-1).nonzero().squeeze(1)
     densities = torch.zeros_like(t)
-    if valid.any():
-        densities[valid] = field_.density(positions[valid], scale)
+    if slots.numel():
+        values = field_.density(flat_positions.index_select(0, slots), scale)
+        densities = densities.reshape(-1).index_put((slots,), values).view_as(t)
     comp = composite_weights(densities, t, step, distance_scale, segments.t_near, segments.t_far)
-    colors = torch.zeros(*t.shape, 3, device=t.device, dtype=t.dtype)
     shade = comp.weights > weight_threshold
     if shade_rays is not None:
         shade = shade & shade_rays[:, None]
-    if shade.any():
-        dirs = directions[:, None, :].expand_as(positions)
-        if detached_rays is None:
-            colors[shade] = field_.color(positions[shade], dirs[shade], scale)
-        else:
-            tracked, untracked = shade & ~detached_rays[:, None], shade & detached_rays[:, None]
-            if tracked.any():
-                colors[tracked] = field_.color(positions[tracked], dirs[tracked], scale)
-            if untracked.any():
-                with torch.no_grad():
-                    colors[untracked] = field_.color(positions[untracked], dirs[untracked], scale)
+    colors = torch.zeros(t.numel(), 3, device=t.device, dtype=t.dtype)
+    read = [(shade, False)] if detached_rays is None else [
+        (shade & ~detached_rays[:, None], False), (shade & detached_rays[:, None], True)]
+    for mask, detached in read:
+        slots = mask.reshape(-1).nonzero().squeeze(1)
+        if slots.numel():
+            with torch.set_grad_enabled(torch.is_grad_enabled() and not detached):
+                values = field_.color(flat_positions.index_select(0, slots),
+                                      directions.index_select(0, slots // t.shape[1]), scale)
+            colors = colors.index_put((slots,), values)
+    colors = colors.view(*t.shape, 3)
     rgb = composite_rgb(comp.weights, colors, background)
     return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade, num_samples)
 
