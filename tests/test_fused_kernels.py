@@ -110,8 +110,8 @@ def test_without_warp_auto_falls_back_to_torch_with_one_line_and_warp_is_an_opti
 
     monkeypatch.setattr(fused_kernels, "_load_warp", broken)
     assert fused_kernels.warp_kernels("auto", said.append) is None
-    assert said == ["frugalnerf: fused kernels unavailable (RuntimeError: no compiler here): rendering with the torch "
-                    "path"]
+    assert said == ["frugalnerf: fused kernels unavailable (RuntimeError: no compiler here): rendering and training on "
+                    "the torch path"]
     assert fused_kernels.warp_kernels("auto", said.append) is None and len(said) == 1  # said once per process
     with pytest.raises(UserError, match="--pipeline.model.kernels warp: Warp cannot be used here"):
         fused_kernels.warp_kernels("warp", said.append)

@@ -147,7 +147,7 @@ def warp_kernels(choice: str, say: Callable[[str], None] = print) -> Optional[Wa
                 _state["warp"] = None
                 _state["why"] = f"{type(err).__name__}: {err}".splitlines()[0]
                 if choice == "auto":
-                    say(f"frugalnerf: fused kernels unavailable ({_state['why']}): rendering with the torch path")
+                    say(f"frugalnerf: fused kernels unavailable ({_state['why']}): rendering and training on the torch path")
     if _state["warp"] is None and choice == "warp":
         raise UserError(f"--pipeline.model.kernels warp: Warp cannot be used here ({_state['why']})")
     return _state["warp"]
