@@ -104,7 +104,7 @@ def test_a_read_that_does_not_compile_falls_back_to_torch_with_one_line(monkeypa
     monkeypatch.setattr(fused_density, "define_density_read", broken)
     said = []
     assert fused_density.fused_density(wp, TensorVMGrid((8, 8, 8), (3, 2, 2)), torch.zeros(4, 3), 1, said.append) is None
-    assert said == ["frugalnerf: fused training density read unavailable for (3, 2, 2) channels (RuntimeError: no "
+    assert said == ["frugalnerf: fused training density read for (3, 2, 2) channels unavailable (RuntimeError: no "
                     "compiler here): reading the planes with torch"]
     field = FrugalNeRFField(torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), (8, 8, 8), density_components=(3, 2, 2),
                             appearance_components=(2, 2, 2), mlp_hidden_dim=8, mlp_implementation="torch")

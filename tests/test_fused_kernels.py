@@ -217,7 +217,7 @@ def test_a_feature_read_that_does_not_compile_falls_back_to_the_planes_read_by_t
             ours = field.inference_color(positions, directions, 0, wp)
             assert torch.equal(ours, field.color(positions, directions, 0))
     said = capsys.readouterr().out
-    assert said.count("fused feature read unavailable for (6, 3, 2) channels (RuntimeError: CPU kernel build") == 1
+    assert said.count("fused feature read for (6, 3, 2) channels unavailable (RuntimeError: CPU kernel build") == 1
 
 
 AABB_FEATURES = torch.tensor([[-1.0, -0.8, -1.2], [1.0, 0.8, 1.2]])

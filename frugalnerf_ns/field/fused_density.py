@@ -12,7 +12,6 @@ adding into one table would race), summed once at the end.
 
 from __future__ import annotations
 
-import time
 from typing import Callable, List, Optional, Sequence
 
 import torch
@@ -20,7 +19,7 @@ from torch import Tensor
 
 from frugalnerf_ns.field.fused_kernel_source import define_density_read
 from frugalnerf_ns.field import fused_kernels
-from frugalnerf_ns.field.fused_kernels import WarpKernels, _lock, _parts, _rows, on_every_core
+from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, _rows, on_every_core
 from frugalnerf_ns.field.tensorial import strided_length
 
 SPLIT_MIN_SAMPLES = 1 << 16
@@ -30,27 +29,10 @@ scale (~21,000 samples) split over the pool made the torch operations right afte
 
 
 def _density_kernels(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print):
-    """(forward, backward, vector types) for planes of ``components`` channels, compiled once per process and counts
-    (Warp caches the build on disk); None, said once, where they do not compile."""
-    key = ("density_read", components)
-    with _lock:
-        state = fused_kernels._state  # the module's (a test may swap it)
-        if key not in state:
-            try:
-                start = time.perf_counter()
-                compiled = define_density_read(fused.wp, components)
-                fused.wp.load_module(compiled[0].module, device="cpu")
-                seconds = time.perf_counter() - start
-                if seconds > 0.5:
-                    say(f"frugalnerf: compiled the fused training density read for {components} channels in "
-                        f"{seconds:.1f} s (once per Warp version)")
-            except Exception as err:  # noqa: BLE001 - any compile failure: the torch reads
-                compiled = None
-                say(f"frugalnerf: fused training density read unavailable for {components} channels "
-                    f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}): reading the planes "
-                    f"with torch")
-            state[key] = compiled
-        return state[key]
+    """(forward, backward, vector types) for planes of ``components`` channels (``fused_kernels.compile_once``)."""
+    return fused_kernels.compile_once(fused, ("density_read", components),
+                                      lambda: define_density_read(fused.wp, components),
+                                      f"fused training density read for {components} channels", say)
 
 
 def _tables(planes: Sequence[Tensor], lines: Sequence[Tensor]) -> List[Tensor]:

@@ -9,8 +9,8 @@ stays the reference it is tested against."""
 from typing import Any
 
 
-def define_kernels(wp) -> dict:
-    """Build the kernels (a function so that importing this module never imports warp)."""
+def define_corners(wp):
+    """The Warp function every read here uses (defined anew for each module that calls it)."""
     @wp.func
     def corners(coord: wp.float32, size: int):
         # One axis of a corner-aligned, border-clamped read ([-1, 1] over ``size`` entries): the lower entry, the
@@ -18,6 +18,13 @@ def define_kernels(wp) -> dict:
         f = wp.clamp((coord + 1.0) * 0.5 * float(size - 1), 0.0, float(size - 1))
         low = wp.min(int(wp.floor(f)), wp.max(size - 2, 0))
         return low, wp.min(low + 1, size - 1), f - float(low)
+
+    return corners
+
+
+def define_kernels(wp) -> dict:
+    """Build the kernels (a function so that importing this module never imports warp)."""
+    corners = define_corners(wp)
 
     @wp.func
     def read_density(grid: wp.array3d(dtype=wp.float32), p: wp.vec3, a: wp.vec3, b: wp.vec3, relu: int) -> wp.float32:
@@ -235,12 +242,7 @@ def define_vm_features(wp, components) -> tuple:
     row = wp.types.vector(length=c0 + c1 + c2, dtype=wp.float32)
     c01 = c0 + c1
 
-    @wp.func
-    def corners(coord: wp.float32, size: int):
-        # As in ``define_kernels`` (a unique module holds its own functions).
-        f = wp.clamp((coord + 1.0) * 0.5 * float(size - 1), 0.0, float(size - 1))
-        low = wp.min(int(wp.floor(f)), wp.max(size - 2, 0))
-        return low, wp.min(low + 1, size - 1), f - float(low)
+    corners = define_corners(wp)
 
     @wp.func
     def plane_line(plane: wp.array(dtype=Any), width: int, height: int, line: wp.array(dtype=Any), x: wp.float32,
@@ -289,12 +291,7 @@ def define_density_read(wp, components) -> tuple:
     c0, c1, c2 = (int(c) for c in components)
     vec0, vec1, vec2 = (wp.types.vector(length=c, dtype=wp.float32) for c in (c0, c1, c2))
 
-    @wp.func
-    def corners(coord: wp.float32, size: int):
-        # As in ``define_kernels`` (a unique module holds its own functions).
-        f = wp.clamp((coord + 1.0) * 0.5 * float(size - 1), 0.0, float(size - 1))
-        low = wp.min(int(wp.floor(f)), wp.max(size - 2, 0))
-        return low, wp.min(low + 1, size - 1), f - float(low)
+    corners = define_corners(wp)
 
     @wp.func
     def plane_line(plane: wp.array(dtype=Any), row: int, width: int, height: int, line: wp.array(dtype=Any),

@@ -341,25 +341,31 @@ def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Optional[Te
 
 
 def _feature_kernel(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print):
-    """(kernel, per-plane vector types, row type) of ``vm_features`` for planes of ``components`` channels,
-    compiled once per process and counts (Warp caches the build on disk); its first compile said in one line as
-    ``_load_warp`` says the module's; None, said once, where it does not compile."""
-    key = ("vm_features", components)
+    """(kernel, per-plane vector types, row type) of ``vm_features`` for planes of ``components`` channels
+    (``compile_once``)."""
+    return compile_once(fused, ("vm_features", components), lambda: define_vm_features(fused.wp, components),
+                        f"fused feature read for {components} channels", say)
+
+
+def compile_once(fused: WarpKernels, key: tuple, define: Callable[[], tuple], what: str,
+                 say: Callable[[str], None] = print) -> Optional[tuple]:
+    """``define()``'s kernels (a tuple whose first kernel's module holds them all), compiled for the CPU once per
+    process and ``key`` (Warp caches the build on disk); the first compile said in one line as ``_load_warp`` says
+    the module's; None, said once, where they do not compile (the caller reads the planes with torch). ``what``
+    names them in those lines."""
     with _lock:
         if key not in _state:
             try:
                 start = time.perf_counter()
-                compiled = define_vm_features(fused.wp, components)
+                compiled = define()
                 fused.wp.load_module(compiled[0].module, device="cpu")
                 seconds = time.perf_counter() - start
                 if seconds > 0.5:
-                    say(f"frugalnerf: compiled the fused feature read for {components} channels in {seconds:.1f} s "
-                        f"(once per Warp version)")
+                    say(f"frugalnerf: compiled the {what} in {seconds:.1f} s (once per Warp version)")
             except Exception as err:  # noqa: BLE001 - any compile failure: the torch reads
                 compiled = None
-                say(f"frugalnerf: fused feature read unavailable for {components} channels "
-                    f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}): reading the planes "
-                    f"with torch")
+                say(f"frugalnerf: {what} unavailable ({type(err).__name__}: "
+                    f"{str(err).splitlines()[0] if str(err) else ''}): reading the planes with torch")
             _state[key] = compiled
     return _state[key]
 
