@@ -171,6 +171,8 @@ def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(mo
     node_sums, fused_reads = [], []
     fused_read = fused_density.fused_density
     monkeypatch.setattr(fused_density, "fused_density", lambda *a, **k: fused_reads.append(1) or fused_read(*a, **k))
+    assert not field.fused_reads_pay()  # a small grid reads the nodes (or the planes with torch) ...
+    monkeypatch.setattr("frugalnerf_ns.field.radiance_field.FUSED_READ_MIN_ENTRIES", 0)  # ... here, the kernels too
     node_sum = field.density_grid.node_sum
 
     def counting_node_sum():

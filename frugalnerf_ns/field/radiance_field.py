@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation, native_bfloat16
 from frugalnerf_ns.field.density import BakedDensity, DensityActivation, activate_density
+from frugalnerf_ns.field import fused_density
 from frugalnerf_ns.field.tensorial import (
     OptimizerState,
     TensorVMGrid,
@@ -38,6 +39,11 @@ zero-fill and six matrix products back), the plane reads a cost per sample: on 2
 1.26x faster on a 177x193x113 grid (3.9 M nodes) and the planes 1.02-1.24x faster (four pairs) on 353x385x241
 (32.7 M, the paper's grid ratio at 1/8 resolution). 2^24 (256^3) lies between the two (not measured there).
 frugalnerf-cpu's 256^3 grid is 289x321x193 with the spanning sizes (17.9 M nodes): it reads its planes."""
+
+FUSED_READ_MIN_ENTRIES = 2**23
+"""Smallest grid (nodes) whose training steps read the planes' density with the fused kernels (``fused_density_reads``);
+smaller grids read the shared nodes. In whole fern and horns 2-view runs the fused reads made steps at 16.4-17.9 M nodes
+8-19 % faster and at 0.1-4.8 M up to ~40 % slower (fixed costs per read: copies, per-core tables, launches)."""
 
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
@@ -150,9 +156,8 @@ class FrugalNeRFField(nn.Module):
         self._channels_last: Dict[tuple, tuple] = {}  # per stride: (parameter versions, fused kernels' tables)
         # Inside ``shared_density_nodes``: a one-entry list holding the density nodes once the first read made them.
         self._shared_nodes: Optional[List[Optional[Tensor]]] = None
-        # Inside ``fused_density_reads``: the fused kernels that read the planes' density (None: torch).
-        self._density_kernels = None
-        self._density_tables: Optional[dict] = None  # and the planes' copies its reads share
+        # Inside ``fused_density_reads``: the fused kernels that read the planes' density and the copies its reads share.
+        self._density_kernels, self._density_tables = None, None
 
     # ---- geometry of the grid -------------------------------------------------------------------------
     def stride(self, scale: int) -> int:
@@ -220,23 +225,23 @@ class FrugalNeRFField(nn.Module):
             raw = None
             fused = self._density_kernels
             if fused is not None and not coords.requires_grad and coords.device.type == "cpu" and coords.shape[0]:
-                from frugalnerf_ns.field.fused_density import fused_density
-
                 stride = self.stride(scale)
-                raw = fused_density(fused, self.density_grid, self.density_grid.view_coords(coords, stride, self.stretched),
-                                    stride, kept=self._density_tables)
+                mapped = self.density_grid.view_coords(coords, stride, self.stretched)
+                raw = fused_density.fused_density(fused, self.density_grid, mapped, stride, kept=self._density_tables)
             if raw is None:
                 products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
                 raw = sum(p.sum(dim=-1) for p in products)
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
 
+    def fused_reads_pay(self) -> bool:
+        """Whether the density grid is large enough for the fused training reads (``FUSED_READ_MIN_ENTRIES``)."""
+        return math.prod(self.density_grid.resolution_tuple) >= FUSED_READ_MIN_ENTRIES
+
     @contextlib.contextmanager
     def fused_density_reads(self, kernels) -> Iterator[None]:
-        """Within the block, ``density`` reads the planes (where it does not read shared nodes) with the fused
-        kernels ``kernels`` (``fused_kernels.warp_kernels``; None: torch) on the CPU, with their backward
-        (``fused_density``): the same values and gradients to float rounding, ~2.8x faster on 2 cores. The block's
-        reads share the planes' channels-last copies, made at the first: nothing may change the grid within it (a
-        training step's forward pass)."""
+        """Within the block ``density`` reads the planes (where not shared nodes) with the fused kernels ``kernels``
+        (None: torch) on the CPU, with their backward (``fused_density``): equal to float rounding, ~2.8x faster on 2
+        cores. Its reads share the planes' copies made at the first: the grid must not change within it (a forward)."""
         previous = self._density_kernels, self._density_tables
         self._density_kernels, self._density_tables = kernels, {}
         try:

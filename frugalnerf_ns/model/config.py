@@ -62,9 +62,9 @@ class FrugalNeRFSettings(ModelConfig):
     training_density_read: Literal["nodes", "planes"] = "nodes"
     """How a training step reads density: "nodes", every plane times its line summed on the grid's nodes once
     per step and read trilinearly at every scale (``FrugalNeRFField.shared_density_nodes``; grids above 256^3
-    nodes read the planes, where that is faster), on the CPU the planes read by the fused kernels where they compile
-    (``kernels``; faster still); "planes", the planes and lines at every sample (the reference; same values and
-    gradients to float rounding)."""
+    nodes read the planes, where that is faster; on the CPU grids from 2^23 nodes read them with the fused kernels
+    where they compile, ``kernels``); "planes", the planes and lines at every sample (the reference; same values
+    and gradients to float rounding)."""
     step_ratio: float = 0.5
     """Sample step at full resolution, in voxels."""
     max_samples_per_ray: int = 1024
@@ -81,8 +81,9 @@ class FrugalNeRFSettings(ModelConfig):
     kernels: Literal["auto", "warp", "torch"] = "auto"
     """Fused kernels (NVIDIA Warp, compiled at first use) for rendering without gradients on the CPU: the density
     march, the appearance reads of a grid too large to bake and the space beyond the box; and in training on the
-    CPU, the density reads of the planes and lines with their backward (in place of ``training_density_read``'s
-    nodes). torch: the reference path. auto: Warp where it imports and compiles, else torch with one line."""
+    CPU, the density reads of a large grid's planes and lines with their backward (from 2^23 nodes, in place of
+    ``training_density_read``'s nodes). torch: the reference path. auto: Warp where it imports and compiles, else
+    torch with one line."""
     mlp_hidden_dim: int = 128
     """Width of the colour MLP."""
     feature_pe: int = 0

@@ -284,11 +284,11 @@ class FrugalNeRFModel(Model):
         # A training bundle names each ray's group: colours that no loss reads are not shaded.
         groups = ray_bundle.metadata.get(RAY_GROUP) if self.training and ray_bundle.metadata else None
         groups = None if groups is None else groups.reshape(-1)
-        # A training step on the CPU reads the planes with the fused kernels where they compile (as fast as the nodes
-        # at 2 M nodes, 1.7x at 16 M), else from nodes shared by its scales (outside training the marcher bakes them).
-        training = self.training and not inference
-        density_kernels = warp_kernels(cfg.kernels, CONSOLE.print) if training and origins.is_cpu else None
-        shared_nodes = training and cfg.training_density_read == "nodes" and density_kernels is None
+        # A training step on the CPU reads a large grid's planes with the fused kernels where they compile, else
+        # density from nodes shared by its scales (outside training the marcher bakes them).
+        fused = self.training and not inference and origins.is_cpu and self.field.fused_reads_pay()
+        density_kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
+        shared_nodes = self.training and not inference and cfg.training_density_read == "nodes" and density_kernels is None
         with self.field.shared_density_nodes(shared_nodes), self.field.fused_density_reads(density_kernels):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
