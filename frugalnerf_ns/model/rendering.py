@@ -104,7 +104,7 @@ def render_scale(
     densities = torch.zeros_like(t)
     if slots.numel():
         values = field_.density(flat_positions.index_select(0, slots), scale)
-        densities = densities.reshape(-1).index_put((slots,), values).view_as(t)
+        densities = densities.reshape(-1).index_put((slots,), values.to(t.dtype)).view_as(t)
     comp = composite_weights(densities, t, step, distance_scale, segments.t_near, segments.t_far)
     shade = comp.weights > weight_threshold
     if shade_rays is not None:
@@ -118,7 +118,7 @@ def render_scale(
             with torch.set_grad_enabled(torch.is_grad_enabled() and not detached):
                 values = field_.color(flat_positions.index_select(0, slots),
                                       directions.index_select(0, slots // t.shape[1]), scale)
-            colors = colors.index_put((slots,), values)
+            colors = colors.index_put((slots,), values.to(t.dtype))
     colors = colors.view(*t.shape, 3)
     rgb = composite_rgb(comp.weights, colors, background)
     return ScaleRender(rgb, comp.depth, comp.accumulation, comp.weights, t, densities, colors, shade, num_samples)
