@@ -51,7 +51,7 @@ def test_table_and_json_writer(tmp_path, capsys):
 
 def test_preset_pipeline_is_set_up_at_its_final_grid(procedural_scene):
     from frugalnerf_ns.bench.pipelines import preset_pipeline
-    from frugalnerf_ns.field.radiance_field import resolution_for_voxels
+    from frugalnerf_ns.field.grid_sizes import resolution_for_voxels
 
     def fewer_voxels(config) -> None:
         config.pipeline.model.final_voxels = 20**3

@@ -163,14 +163,15 @@ def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(mo
 
 
 def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(model_and_batch, monkeypatch):
-    """The nodes and the planes read by the fused kernels against the planes read by torch."""
-    from frugalnerf_ns.field import fused_density
+    """The nodes and the planes read by the fused kernels (density and colour) against the planes read by torch."""
+    from frugalnerf_ns.field import fused_training_reads
 
     model, bundle, batch = model_and_batch
     field = model.field
     node_sums, fused_reads = [], []
-    fused_read = fused_density.fused_density
-    monkeypatch.setattr(fused_density, "fused_density", lambda *a, **k: fused_reads.append(1) or fused_read(*a, **k))
+    fused_read = fused_training_reads.StepReads.read
+    monkeypatch.setattr(fused_training_reads.StepReads, "read",
+                        lambda self, grid, *a: fused_reads.append(grid) or fused_read(self, grid, *a))
     assert not field.fused_reads_pay()  # a small grid reads the nodes (or the planes with torch) ...
     monkeypatch.setattr("frugalnerf_ns.field.radiance_field.FUSED_READ_MIN_ENTRIES", 0)  # ... here, the kernels too
     node_sum = field.density_grid.node_sum
@@ -192,11 +193,13 @@ def test_density_read_from_shared_nodes_gives_the_planes_losses_and_gradients(mo
         assert not fused_reads
         # The planes read by the kernels: asked for, and in place of the nodes where the kernels compile.
         fast_reads = [step("planes", "warp"), step("nodes", "warp")] if fused_kernels_compile() else []
-        assert len(fused_reads) == (6 if fast_reads else 0) and len(node_sums) == 1  # every scale's read, no nodes
+        density_reads = [grid for grid in fused_reads if grid is field.density_grid]
+        assert len(density_reads) == (6 if fast_reads else 0) and len(node_sums) == 1  # every scale's read, no nodes
+        assert (len(fused_reads) > 9) == bool(fast_reads)  # and each scale's colour
     finally:
         model.config.training_density_read, model.config.kernels = "nodes", "auto"
         del field.density_grid.node_sum
-    assert field._shared_nodes is None and field._density_kernels is None  # nothing kept after the step
+    assert field._shared_nodes is None and field._step_reads is None  # nothing kept after the step
     for (fast, fast_losses, fast_grads) in [(nodes, node_losses, node_grads), *fast_reads]:
         for ours, reference in zip(fast.scales, planes.scales):
             assert (reference.densities > 0).any()

@@ -4,7 +4,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.field.grid_sizes import log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.field.tensorial import TensorVMGrid, coords_for_stride, read_node_sum, strided_length
 
 AABB = torch.tensor([[-1.0, -1.5, -0.5], [1.0, 1.5, 0.5]])

@@ -281,22 +281,25 @@ def define_vm_features(wp, components) -> tuple:
     return vm_features, (vec0, vec1, vec2), row
 
 
-def define_density_read(wp, components) -> tuple:
-    """(``density_read``, ``density_read_backward``, the three planes' vector types) for planes and lines of
-    ``components`` (XY, XZ, YZ) channels, in a module of their own per component counts: a training step's density
-    at its samples from a grid's stride-``stride`` views (``TensorVMGrid.plane_line_products`` summed over planes and
-    channels), and the gradient of the planes and lines from the density's. The tensors are channels-last copies of
-    the full planes and lines, read at the view's entries times the stride (as ``tensorial.sample_plane`` reads them);
-    a corner is one vector load of a plane's channels."""
+def define_training_reads(wp, components) -> dict:
+    """A training step's reads of a grid whose planes and lines have ``components`` (XY, XZ, YZ) channels, in a
+    module of their own per component counts: ``density_read`` (``TensorVMGrid.plane_line_products`` summed over
+    planes and channels), ``feature_read`` (the products concatenated: the appearance features) and their backward
+    kernels, which add the planes' and lines' gradient into tables; and ``vectors``, ``row``, the three planes'
+    vector types and the features' row type. The tensors are channels-last copies of the full planes and lines, read
+    at a stride's view's entries times the stride (as ``tensorial.sample_plane`` reads them): a corner is one vector
+    load of a plane's channels."""
     c0, c1, c2 = (int(c) for c in components)
     vec0, vec1, vec2 = (wp.types.vector(length=c, dtype=wp.float32) for c in (c0, c1, c2))
+    row = wp.types.vector(length=c0 + c1 + c2, dtype=wp.float32)
+    c01 = c0 + c1
 
     corners = define_corners(wp)
 
     @wp.func
     def plane_line(plane: wp.array(dtype=Any), row: int, width: int, height: int, line: wp.array(dtype=Any),
-                   length: int, stride: int, x: wp.float32, y: wp.float32, z: wp.float32) -> wp.float32:
-        # sample_plane times sample_line on the stride's views, summed over the channels.
+                   length: int, stride: int, x: wp.float32, y: wp.float32, z: wp.float32):
+        # sample_plane and sample_line on the stride's views, every channel at once: the plane's and the line's value.
         x0, x1, tx = corners(x, width)
         y0, y1, ty = corners(y, height)
         z0, z1, tz = corners(z, length)
@@ -305,30 +308,33 @@ def define_density_read(wp, components) -> tuple:
         value = (plane[r0 + x0 * stride] * (1.0 - tx) + plane[r0 + x1 * stride] * tx) * (1.0 - ty) + (
             plane[r1 + x0 * stride] * (1.0 - tx) + plane[r1 + x1 * stride] * tx) * ty
         near = line[z0 * stride]
-        return wp.dot(value, near + (line[z1 * stride] - near) * tz)
+        return value, near + (line[z1 * stride] - near) * tz
 
     @wp.func
     def plane_line_backward(plane: wp.array(dtype=Any), row: int, width: int, height: int, line: wp.array(dtype=Any),
-                            length: int, stride: int, x: wp.float32, y: wp.float32, z: wp.float32, grad: wp.float32,
+                            length: int, stride: int, x: wp.float32, y: wp.float32, z: wp.float32, grad: Any,
                             plane_grad: wp.array(dtype=Any), line_grad: wp.array(dtype=Any)):
-        # d(plane . line) / d corners: the line's value times each plane corner's weight, the plane's value times
-        # each line entry's weight; added into this launch's own gradient tables.
+        # d(plane * line) / d corners, channel by channel, for the products' gradient ``grad``: the line's value
+        # times each plane corner's weight, the plane's value times each line entry's weight; added into this
+        # launch's own gradient tables.
         x0, x1, tx = corners(x, width)
         y0, y1, ty = corners(y, height)
         z0, z1, tz = corners(z, length)
         r0 = y0 * stride * row
         r1 = y1 * stride * row
         near = line[z0 * stride]
-        by_line = (near + (line[z1 * stride] - near) * tz) * grad
+        by_line = wp.cw_mul(near + (line[z1 * stride] - near) * tz, grad)
         wp.atomic_add(plane_grad, r0 + x0 * stride, by_line * ((1.0 - tx) * (1.0 - ty)))
         wp.atomic_add(plane_grad, r0 + x1 * stride, by_line * (tx * (1.0 - ty)))
         wp.atomic_add(plane_grad, r1 + x0 * stride, by_line * ((1.0 - tx) * ty))
         wp.atomic_add(plane_grad, r1 + x1 * stride, by_line * (tx * ty))
-        by_plane = ((plane[r0 + x0 * stride] * (1.0 - tx) + plane[r0 + x1 * stride] * tx) * (1.0 - ty) + (
-            plane[r1 + x0 * stride] * (1.0 - tx) + plane[r1 + x1 * stride] * tx) * ty) * grad
+        by_plane = wp.cw_mul((plane[r0 + x0 * stride] * (1.0 - tx) + plane[r0 + x1 * stride] * tx) * (1.0 - ty) + (
+            plane[r1 + x0 * stride] * (1.0 - tx) + plane[r1 + x1 * stride] * tx) * ty, grad)
         wp.atomic_add(line_grad, z0 * stride, by_plane * (1.0 - tz))
         wp.atomic_add(line_grad, z1 * stride, by_plane * tz)
 
+    # PLANE_AXES: XY with line Z, XZ with line Y, YZ with line X; ``sizes`` the views' entries along x, y, z and
+    # ``rows`` the full planes' widths (X, X, Y).
     @wp.kernel(module="unique", enable_backward=False)
     def density_read(
         coords: wp.array(dtype=wp.vec3), sizes: wp.vec3i, rows: wp.vec3i, stride: int,
@@ -337,13 +343,12 @@ def define_density_read(wp, components) -> tuple:
         plane2: wp.array(dtype=vec2), line2: wp.array(dtype=vec2),
         out: wp.array(dtype=wp.float32),
     ):
-        # PLANE_AXES: XY with line Z, XZ with line Y, YZ with line X; ``sizes`` the views' entries along x, y, z and
-        # ``rows`` the full planes' widths (X, X, Y).
         i = wp.tid()
         c = coords[i]
-        out[i] = (plane_line(plane0, rows[0], sizes[0], sizes[1], line0, sizes[2], stride, c[0], c[1], c[2])
-                  + plane_line(plane1, rows[1], sizes[0], sizes[2], line1, sizes[1], stride, c[0], c[2], c[1])
-                  + plane_line(plane2, rows[2], sizes[1], sizes[2], line2, sizes[0], stride, c[1], c[2], c[0]))
+        p0, l0 = plane_line(plane0, rows[0], sizes[0], sizes[1], line0, sizes[2], stride, c[0], c[1], c[2])
+        p1, l1 = plane_line(plane1, rows[1], sizes[0], sizes[2], line1, sizes[1], stride, c[0], c[2], c[1])
+        p2, l2 = plane_line(plane2, rows[2], sizes[1], sizes[2], line2, sizes[0], stride, c[1], c[2], c[0])
+        out[i] = wp.dot(p0, l0) + wp.dot(p1, l1) + wp.dot(p2, l2)
 
     @wp.kernel(module="unique", enable_backward=False)
     def density_read_backward(
@@ -361,11 +366,81 @@ def define_density_read(wp, components) -> tuple:
         if g == 0.0:  # a sample whose activation cut it (ReLU below 0) or that no loss reads adds nothing
             return
         c = coords[i]
-        plane_line_backward(plane0, rows[0], sizes[0], sizes[1], line0, sizes[2], stride, c[0], c[1], c[2], g,
+        plane_line_backward(plane0, rows[0], sizes[0], sizes[1], line0, sizes[2], stride, c[0], c[1], c[2], vec0(g),
                             plane_grad0, line_grad0)
-        plane_line_backward(plane1, rows[1], sizes[0], sizes[2], line1, sizes[1], stride, c[0], c[2], c[1], g,
+        plane_line_backward(plane1, rows[1], sizes[0], sizes[2], line1, sizes[1], stride, c[0], c[2], c[1], vec1(g),
                             plane_grad1, line_grad1)
-        plane_line_backward(plane2, rows[2], sizes[1], sizes[2], line2, sizes[0], stride, c[1], c[2], c[0], g,
+        plane_line_backward(plane2, rows[2], sizes[1], sizes[2], line2, sizes[0], stride, c[1], c[2], c[0], vec2(g),
                             plane_grad2, line_grad2)
 
-    return density_read, density_read_backward, (vec0, vec1, vec2)
+    @wp.kernel(module="unique", enable_backward=False)
+    def feature_read(
+        coords: wp.array(dtype=wp.vec3), sizes: wp.vec3i, rows: wp.vec3i, stride: int,
+        plane0: wp.array(dtype=vec0), line0: wp.array(dtype=vec0),
+        plane1: wp.array(dtype=vec1), line1: wp.array(dtype=vec1),
+        plane2: wp.array(dtype=vec2), line2: wp.array(dtype=vec2),
+        out: wp.array(dtype=row),
+    ):
+        i = wp.tid()
+        c = coords[i]
+        p0, l0 = plane_line(plane0, rows[0], sizes[0], sizes[1], line0, sizes[2], stride, c[0], c[1], c[2])
+        p1, l1 = plane_line(plane1, rows[1], sizes[0], sizes[2], line1, sizes[1], stride, c[0], c[2], c[1])
+        p2, l2 = plane_line(plane2, rows[2], sizes[1], sizes[2], line2, sizes[0], stride, c[1], c[2], c[0])
+        a = wp.cw_mul(p0, l0)
+        b = wp.cw_mul(p1, l1)
+        e = wp.cw_mul(p2, l2)
+        features = row()
+        for k in range(c0):
+            features[k] = a[k]
+        for k in range(c1):
+            features[c0 + k] = b[k]
+        for k in range(c2):
+            features[c01 + k] = e[k]
+        out[i] = features
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def feature_read_backward(
+        coords: wp.array(dtype=wp.vec3), sizes: wp.vec3i, rows: wp.vec3i, stride: int,
+        plane0: wp.array(dtype=vec0), line0: wp.array(dtype=vec0),
+        plane1: wp.array(dtype=vec1), line1: wp.array(dtype=vec1),
+        plane2: wp.array(dtype=vec2), line2: wp.array(dtype=vec2),
+        grad: wp.array(dtype=row),
+        plane_grad0: wp.array(dtype=vec0), line_grad0: wp.array(dtype=vec0),
+        plane_grad1: wp.array(dtype=vec1), line_grad1: wp.array(dtype=vec1),
+        plane_grad2: wp.array(dtype=vec2), line_grad2: wp.array(dtype=vec2),
+    ):
+        i = wp.tid()
+        g = grad[i]
+        c = coords[i]
+        g0 = vec0()
+        g1 = vec1()
+        g2 = vec2()
+        for k in range(c0):
+            g0[k] = g[k]
+        for k in range(c1):
+            g1[k] = g[c0 + k]
+        for k in range(c2):
+            g2[k] = g[c01 + k]
+        plane_line_backward(plane0, rows[0], sizes[0], sizes[1], line0, sizes[2], stride, c[0], c[1], c[2], g0,
+                            plane_grad0, line_grad0)
+        plane_line_backward(plane1, rows[1], sizes[0], sizes[2], line1, sizes[1], stride, c[0], c[2], c[1], g1,
+                            plane_grad1, line_grad1)
+        plane_line_backward(plane2, rows[2], sizes[1], sizes[2], line2, sizes[0], stride, c[1], c[2], c[0], g2,
+                            plane_grad2, line_grad2)
+
+    def channels_first(vector, channels: int):
+        @wp.kernel(module="unique", enable_backward=False)
+        def to_channels_first(table: wp.array(dtype=vector), out: wp.array2d(dtype=wp.float32)):
+            # A gradient table [n, C] as [C, n]: each row read as one vector, written as C entries n apart (torch's
+            # transposing copy of a 48-channel plane took ~3x as long).
+            r = wp.tid()
+            v = table[r]
+            for k in range(channels):
+                out[k, r] = v[k]
+
+        return to_channels_first
+
+    return {"density_read": density_read, "density_read_backward": density_read_backward,
+            "feature_read": feature_read, "feature_read_backward": feature_read_backward,
+            "channels_first": [channels_first(v, c) for v, c in ((vec0, c0), (vec1, c1), (vec2, c2))],
+            "vectors": (vec0, vec1, vec2), "row": row}

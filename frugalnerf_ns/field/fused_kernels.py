@@ -349,7 +349,7 @@ def _feature_kernel(fused: WarpKernels, components: tuple, say: Callable[[str], 
 
 def compile_once(fused: WarpKernels, key: tuple, define: Callable[[], tuple], what: str,
                  say: Callable[[str], None] = print) -> Optional[tuple]:
-    """``define()``'s kernels (a tuple whose first kernel's module holds them all), compiled for the CPU once per
+    """``define()``'s kernels (a tuple or dict holding them), each kernel's module compiled for the CPU once per
     process and ``key`` (Warp caches the build on disk); the first compile said in one line as ``_load_warp`` says
     the module's; None, said once, where they do not compile (the caller reads the planes with torch). ``what``
     names them in those lines."""
@@ -358,7 +358,10 @@ def compile_once(fused: WarpKernels, key: tuple, define: Callable[[], tuple], wh
             try:
                 start = time.perf_counter()
                 compiled = define()
-                fused.wp.load_module(compiled[0].module, device="cpu")
+                parts = [*(compiled.values() if isinstance(compiled, dict) else compiled)]
+                parts = [k for part in parts for k in (part if isinstance(part, list) else [part])]
+                for module in {id(k.module): k.module for k in parts if isinstance(k, fused.wp.Kernel)}.values():
+                    fused.wp.load_module(module, device="cpu")
                 seconds = time.perf_counter() - start
                 if seconds > 0.5:
                     say(f"frugalnerf: compiled the {what} in {seconds:.1f} s (once per Warp version)")

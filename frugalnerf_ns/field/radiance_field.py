@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation, native_bfloat16
 from frugalnerf_ns.field.density import BakedDensity, DensityActivation, activate_density
-from frugalnerf_ns.field import fused_density
+from frugalnerf_ns.field import fused_training_reads
 from frugalnerf_ns.field.tensorial import (
     OptimizerState,
     TensorVMGrid,
@@ -41,56 +41,13 @@ zero-fill and six matrix products back), the plane reads a cost per sample: on 2
 frugalnerf-cpu's 256^3 grid is 289x321x193 with the spanning sizes (17.9 M nodes): it reads its planes."""
 
 FUSED_READ_MIN_ENTRIES = 2**23
-"""Smallest grid (nodes) whose training steps read the planes' density with the fused kernels (``fused_density_reads``);
+"""Smallest grid (nodes) whose training steps read the planes' density with the fused kernels (``fused_training_reads``);
 smaller grids read the shared nodes. In whole fern and horns 2-view runs the fused reads made steps at 16.4-17.9 M nodes
 8-19 % faster and at 0.1-4.8 M 5-15 % slower (fixed costs per read: copies, per-core tables, launches)."""
 
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
 (the CPU presets' ~4 M nodes x 27; the paper preset's grid reads its planes)."""
-
-
-def log_linear_voxel_counts(initial: int, final: int, num_upsamples: int) -> List[int]:
-    """Voxel counts after each upsampling: from ``initial`` to ``final`` in equal ratios (TensoRF)."""
-    if num_upsamples <= 0:
-        return []
-    log_a, log_b = math.log(initial), math.log(final)
-    return [int(round(math.exp(log_a + (log_b - log_a) * (i + 1) / num_upsamples))) for i in range(num_upsamples)]
-
-
-def resolution_for_voxels(
-    num_voxels: int, box_size: Sequence[float], span_stride: int = 1, span_rounding: str = "nearest"
-) -> Tuple[int, int, int]:
-    """Per-axis resolution with cubic voxels filling a box of ``box_size`` with about ``num_voxels``.
-
-    ``span_stride`` > 1 rounds each axis to a ``span_stride * k + 1`` entries (k >= 1), so a view keeping every
-    ``span_stride``-th entry (a lower scale) ends on the box's far face instead of stopping short of it
-    (``coords_for_stride``: points beyond a view's last entry read that entry). ``span_rounding`` "nearest"
-    takes the nearest such size (a small grid may lose up to half a coarse interval per axis: 35x39x23 becomes
-    33x33x17 on LLFF's NDC box, 59 % of the voxels), "up" the next one at or above the axis' size (never fewer
-    entries: 49x49x33), "kept" the nearest unless the grid keeps less than ``KEPT_VOXEL_SHARE`` of the voxels,
-    then the axes that lost most round up instead (33x33x33).
-    """
-    volume = math.prod(float(s) for s in box_size)
-    voxel = (volume / num_voxels) ** (1.0 / 3.0)
-    resolution = [max(2, int(float(s) / voxel)) for s in box_size]
-    if span_rounding not in ("nearest", "up", "kept"):
-        raise ValueError(f"span_rounding must be 'nearest', 'up' or 'kept', not {span_rounding!r}")
-    if span_stride > 1:
-        asked = resolution
-        to_int = math.ceil if span_rounding == "up" else round
-        resolution = [span_stride * max(1, to_int((r - 1) / span_stride)) + 1 for r in asked]
-        if span_rounding == "kept":
-            # Nearest, then the axis that lost the largest share of its entries rounds up instead, until the
-            # grid keeps at least KEPT_VOXEL_SHARE of the voxels asked for.
-            while math.prod(resolution) < KEPT_VOXEL_SHARE * math.prod(asked):
-                axis = min(range(3), key=lambda i: resolution[i] / asked[i])
-                resolution[axis] += span_stride
-    return tuple(resolution)  # type: ignore[return-value]
-
-
-KEPT_VOXEL_SHARE = 0.75
-"""Least share of the asked voxels a grid rounded with ``span_rounding="kept"`` keeps."""
 
 
 class FrugalNeRFField(nn.Module):
@@ -156,8 +113,8 @@ class FrugalNeRFField(nn.Module):
         self._channels_last: Dict[tuple, tuple] = {}  # per stride: (parameter versions, fused kernels' tables)
         # Inside ``shared_density_nodes``: a one-entry list holding the density nodes once the first read made them.
         self._shared_nodes: Optional[List[Optional[Tensor]]] = None
-        # Inside ``fused_density_reads``: the fused kernels that read the planes' density and the copies its reads share.
-        self._density_kernels, self._density_tables = None, None
+        # Inside ``fused_training_reads``: the forward pass's fused reads of the planes.
+        self._step_reads: Optional[fused_training_reads.StepReads] = None
 
     # ---- geometry of the grid -------------------------------------------------------------------------
     def stride(self, scale: int) -> int:
@@ -222,12 +179,7 @@ class FrugalNeRFField(nn.Module):
                 nodes = self._shared_nodes[0] = self.density_grid.node_sum()
             raw = read_node_sum(nodes, coords, self.stride(scale), self.stretched)
         else:
-            raw = None
-            fused = self._density_kernels
-            if fused is not None and not coords.requires_grad and coords.device.type == "cpu" and coords.shape[0]:
-                stride = self.stride(scale)
-                mapped = self.density_grid.view_coords(coords, stride, self.stretched)
-                raw = fused_density.fused_density(fused, self.density_grid, mapped, stride, kept=self._density_tables)
+            raw = self._fused_read(self.density_grid, coords, scale, features=False)
             if raw is None:
                 products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
                 raw = sum(p.sum(dim=-1) for p in products)
@@ -238,16 +190,27 @@ class FrugalNeRFField(nn.Module):
         return math.prod(self.density_grid.resolution_tuple) >= FUSED_READ_MIN_ENTRIES
 
     @contextlib.contextmanager
-    def fused_density_reads(self, kernels) -> Iterator[None]:
-        """Within the block ``density`` reads the planes (where not shared nodes) with the fused kernels ``kernels``
-        (None: torch) on the CPU, with their backward (``fused_density``): equal to float rounding, ~2.8x faster on 2
-        cores. Its reads share the planes' copies made at the first: the grid must not change within it (a forward)."""
-        previous = self._density_kernels, self._density_tables
-        self._density_kernels, self._density_tables = kernels, {}
+    def fused_training_reads(self, kernels) -> Iterator[None]:
+        """Within the block ``density`` (where not from shared nodes) and ``color`` read the planes with the fused
+        kernels ``kernels`` (None: torch) on the CPU, with their backward (``fused_training_reads``): equal to float
+        rounding. Its reads share the planes' copies made at each grid's first read and one gradient per grid: the
+        grids must not change within it (a forward pass)."""
+        previous = self._step_reads
+        self._step_reads = None if kernels is None else fused_training_reads.StepReads(kernels)
         try:
             yield
         finally:
-            self._density_kernels, self._density_tables = previous
+            if self._step_reads is not None:
+                self._step_reads.close()
+            self._step_reads = previous
+
+    def _fused_read(self, grid: TensorVMGrid, coords: Tensor, scale: int, features: bool) -> Optional[Tensor]:
+        """``grid``'s density or features at ``coords`` ([-1, 1]) read by the fused kernels inside
+        ``fused_training_reads``; None elsewhere (and where they do not compile): the caller reads with torch."""
+        if self._step_reads is None or coords.requires_grad or coords.device.type != "cpu" or not coords.shape[0]:
+            return None
+        stride = self.stride(scale)
+        return self._step_reads.read(grid, grid.view_coords(coords, stride, self.stretched), stride, features)
 
     @contextlib.contextmanager
     def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:
@@ -385,8 +348,10 @@ class FrugalNeRFField(nn.Module):
         self, positions: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], scale: int = 0
     ) -> Float[Tensor, "n 3"]:
         coords = self.normalize(positions)
-        products = self.appearance_grid.plane_line_products(coords, self.stride(scale), self.stretched)
-        features = self.appearance_basis(torch.cat(products, dim=-1))
+        products = self._fused_read(self.appearance_grid, coords, scale, features=True)
+        if products is None:
+            products = torch.cat(self.appearance_grid.plane_line_products(coords, self.stride(scale), self.stretched), -1)
+        features = self.appearance_basis(products)
         return self.color_mlp(features, directions)
 
     # ---- schedules (called from training callbacks) ---------------------------------------------------

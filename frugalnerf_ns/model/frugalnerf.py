@@ -31,15 +31,10 @@ from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
 from frugalnerf_ns.field.outer_space import OuterSpace, depth_through_outer_space
-from frugalnerf_ns.field.radiance_field import FrugalNeRFField, log_linear_voxel_counts, resolution_for_voxels
-from frugalnerf_ns.model.geometric_adaptation import (
-    ADAPTATION_METRIC,
-    ReferenceViews,
-    ScaleFractionHistory,
-    pseudo_ground_truth_scale,
-    scale_choice_colors,
-    scale_statistics,
-)
+from frugalnerf_ns.field.grid_sizes import log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.field.radiance_field import FrugalNeRFField
+from frugalnerf_ns.model.geometric_adaptation import (ADAPTATION_METRIC, ReferenceViews, ScaleFractionHistory,
+                                                      pseudo_ground_truth_scale, scale_choice_colors, scale_statistics)
 from frugalnerf_ns.model.image_scoring import ImageScorer
 from frugalnerf_ns.scoring.metrics import capped_psnr
 from frugalnerf_ns.model.config import FrugalNeRFSettings
@@ -289,7 +284,7 @@ class FrugalNeRFModel(Model):
         fused = self.training and not inference and origins.is_cpu and self.field.fused_reads_pay()
         density_kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
         shared_nodes = self.training and not inference and cfg.training_density_read == "nodes" and density_kernels is None
-        with self.field.shared_density_nodes(shared_nodes), self.field.fused_density_reads(density_kernels):
+        with self.field.shared_density_nodes(shared_nodes), self.field.fused_training_reads(density_kernels):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,

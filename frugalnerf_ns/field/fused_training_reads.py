@@ -1,0 +1,205 @@
+"""A training step's reads of a grid's planes and lines in fused kernels (NVIDIA Warp) on the CPU: the density
+(``TensorVMGrid.plane_line_products`` summed over planes and channels) and the appearance features (the products
+concatenated), each with its backward in a kernel of its own, without the autograd graph's per-sample tensors (each
+plane's and line's [C, n] reads, their products, the corner weights, and four scattered adds per plane backward).
+
+The torch reads stay the reference and the path of ``--pipeline.model.kernels torch``. One forward pass's reads of a
+grid (``GridReads``: its three scales, and for the appearance the detached rays too) share
+- channels-last copies of the full planes and lines (a corner is one vector load of a plane's channels), read at a
+  strided view's entries times the stride, so a lower scale's gradient lands on the full tensors' entries as
+  ``tensorial.sample_plane``'s does;
+- one set of gradient tables, one per core: each read's backward adds its samples' gradient into them (Warp's adds
+  on the CPU are plain adds: two launches adding into one table would race), and one autograd node every read
+  hangs from (``_GridGradient``) hands their sum to the planes and lines once, after the last read's backward. Read
+  by read, each scale's gradient would be a zero-filled tensor of the full planes' size, and autograd would add the
+  three.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Dict, List, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from frugalnerf_ns.field import fused_kernels
+from frugalnerf_ns.field.fused_kernel_source import define_training_reads
+from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, _rows, on_every_core
+from frugalnerf_ns.field.tensorial import strided_length
+
+SPLIT_MIN_SAMPLES = 1 << 16
+"""Density samples from which a read (and its backward) runs one launch per core. Below it one launch: a fern step's
+coarsest scale (~21,000 samples) split over the pool made the torch operations right after it stall (~11 ms a step in
+``nonzero`` calls on 2 cores), more than the split saved."""
+
+SPLIT_MIN_FEATURE_SAMPLES = 1 << 16
+"""The same for the appearance features (each sample 72 channels at the presets' components, against the density's
+24)."""
+
+
+def _training_kernels(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print) -> Optional[dict]:
+    """``define_training_reads``' kernels for planes of ``components`` channels (``fused_kernels.compile_once``)."""
+    return fused_kernels.compile_once(fused, ("training_reads", components),
+                                      lambda: define_training_reads(fused.wp, components),
+                                      f"fused training reads for {components} channels", say)
+
+
+def _tables(planes: Sequence[Tensor], lines: Sequence[Tensor]) -> List[Tensor]:
+    """Channels-last float32 copies: each plane [1, C, H, W] as [H*W, C], each line [1, C, L, 1] as [L, C]."""
+    tables = []
+    for plane, line in zip(planes, lines):
+        _, comps, height, width = plane.shape
+        tables.append(_rows(plane.detach()[0].permute(1, 2, 0), height * width, comps))
+        tables.append(_rows(line.detach()[0, :, :, 0].T, line.shape[2], comps))
+    return tables
+
+
+class GridReads:
+    """One forward pass's fused reads of one grid (``TensorVMGrid``), the grid unchanged throughout: its tables and
+    gradient tables (see the module's docstring). ``close`` at the end of the forward pass."""
+
+    def __init__(self, fused: WarpKernels, grid, kernels: dict) -> None:
+        self.fused, self.kernels = fused, kernels
+        self.parameters = [*grid.planes, *grid.lines]
+        self.tables = _tables(grid.planes, grid.lines)
+        # PLANE_AXES: XY is [1, c, Y, X], XZ [1, c, Z, X]: the full grid's X, Y, Z entries.
+        self.full = (grid.planes[0].shape[3], grid.planes[0].shape[2], grid.planes[1].shape[2])
+        self.components = tuple(grid.components)
+        self.gradients: Dict[int, List[Tensor]] = {}  # per launch part, made at its first backward
+        self._node: Optional[Tensor] = None
+
+    def read(self, coords: Tensor, stride: int, features: bool) -> Tensor:
+        """Density [n] (``features`` False) or features [n, sum of components] at coordinates already mapped into the
+        stride's views (``TensorVMGrid.view_coords``)."""
+        coords = coords.detach().to(torch.float32).contiguous()
+        if not torch.is_grad_enabled() or not any(p.requires_grad for p in self.parameters):
+            return self.values(coords, stride, features)
+        if self._node is None:
+            self._node = _GridGradient.apply(self, *self.parameters)
+        return _FusedRead.apply(self._node, coords, stride, features, self)
+
+    def close(self) -> None:
+        """Let go of the autograd node (it holds this object: no cycle is left for the garbage collector)."""
+        self._node = None
+
+    def _arguments(self, stride: int) -> list:
+        wp, vectors = self.fused.wp, self.kernels["vectors"]
+        sizes = wp.vec3i(*[strided_length(n, stride) for n in self.full])
+        rows = wp.vec3i(self.full[0], self.full[0], self.full[1])
+        return [sizes, rows, stride, *[wp.from_torch(t, dtype=vectors[k // 2]) for k, t in enumerate(self.tables)]]
+
+    def values(self, coords: Tensor, stride: int, features: bool) -> Tensor:
+        wp, n = self.fused.wp, coords.shape[0]
+        shared = self._arguments(stride)
+        if features:
+            kernel, dtype = self.kernels["feature_read"], self.kernels["row"]
+            out, split = torch.empty(n, sum(self.components), dtype=torch.float32), SPLIT_MIN_FEATURE_SAMPLES
+        else:
+            kernel, dtype = self.kernels["density_read"], wp.float32
+            out, split = torch.empty(n, dtype=torch.float32), SPLIT_MIN_SAMPLES
+
+        def launch(a: int, b: int) -> None:
+            wp.launch(kernel, dim=b - a, device="cpu", inputs=[
+                wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b], dtype=dtype)])
+
+        on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(n, split)])
+        return out
+
+    def add_gradient(self, coords: Tensor, stride: int, features: bool, grad: Tensor) -> None:
+        """Add the planes' and lines' gradient from the read's (``grad``) into the gradient tables."""
+        wp, vectors = self.fused.wp, self.kernels["vectors"]
+        grad = grad.detach().to(torch.float32).contiguous()
+        shared = self._arguments(stride)
+        if features:
+            kernel, dtype, split = self.kernels["feature_read_backward"], self.kernels["row"], SPLIT_MIN_FEATURE_SAMPLES
+        else:
+            kernel, dtype, split = self.kernels["density_read_backward"], wp.float32, SPLIT_MIN_SAMPLES
+        parts = _parts(coords.shape[0], split)
+        for part in range(len(parts)):
+            if part not in self.gradients:
+                self.gradients[part] = [torch.zeros_like(t) for t in self.tables]
+
+        def launch(part: int, a: int, b: int) -> None:
+            own = [wp.from_torch(g, dtype=vectors[k // 2]) for k, g in enumerate(self.gradients[part])]
+            wp.launch(kernel, dim=b - a, device="cpu", inputs=[
+                wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(grad[a:b], dtype=dtype), *own])
+
+        on_every_core([(lambda p=p, a=a, b=b: launch(p, a, b)) for p, (a, b) in enumerate(parts)])
+
+    def take_gradients(self) -> List[Optional[Tensor]]:
+        """The planes' and lines' gradients in their own shapes (the tables summed), then forget them; None each
+        where no read's backward ran."""
+        if not self.gradients:
+            return [None] * len(self.parameters)
+        tables = list(self.gradients.values())
+        self.gradients = {}
+        wp, vectors = self.fused.wp, self.kernels["vectors"]
+        results = []
+        for k, parts in enumerate(zip(*tables)):
+            summed = parts[0]
+            for other in parts[1:]:
+                summed += other
+            out = torch.empty(summed.shape[1], summed.shape[0], dtype=torch.float32)
+            launch = [(lambda a=a, b=b: wp.launch(self.kernels["channels_first"][k // 2], dim=b - a, device="cpu", inputs=[
+                wp.from_torch(summed[a:b], dtype=vectors[k // 2]), wp.from_torch(out[:, a:b])])) for a, b in _parts(summed.shape[0], 1 << 15)]
+            on_every_core(launch)
+            results.append(out)
+        # The tables are plane, line per pair; the parameters the planes, then the lines. [H*W, C] -> [1, C, H, W]
+        # and [L, C] -> [1, C, L, 1].
+        return [g.view(p.shape).to(p.dtype) for p, g in zip(self.parameters, [*results[0::2], *results[1::2]])]
+
+
+class _GridGradient(torch.autograd.Function):
+    """The node every fused read of a forward pass hangs from: its output is a token (a zero scalar) the reads take
+    as their input, so the autograd engine runs its backward once, after every read's: it hands the planes and lines
+    the gradient the reads added into the tables."""
+
+    @staticmethod
+    def forward(ctx, reads: GridReads, *parameters: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.reads = reads
+        return torch.zeros((), dtype=torch.float32)
+
+    @staticmethod
+    def backward(ctx, _):  # type: ignore[override]
+        return (None, *ctx.reads.take_gradients())
+
+
+class _FusedRead(torch.autograd.Function):
+    """A fused read whose backward adds into the grid's gradient tables (``GridReads.add_gradient``)."""
+
+    @staticmethod
+    def forward(ctx, node: Tensor, coords: Tensor, stride: int, features: bool,  # type: ignore[override]
+                reads: GridReads) -> Tensor:
+        ctx.save_for_backward(coords)
+        ctx.stride, ctx.features, ctx.reads = stride, features, reads
+        return reads.values(coords, stride, features)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        (coords,) = ctx.saved_tensors
+        ctx.reads.add_gradient(coords, ctx.stride, ctx.features, grad)
+        return torch.zeros((), dtype=torch.float32), None, None, None, None
+
+
+class StepReads:
+    """A forward pass's fused reads of a field's grids (``FrugalNeRFField.fused_training_reads``): one ``GridReads`` per
+    grid, made at its first read."""
+
+    def __init__(self, fused: WarpKernels, say: Callable[[str], None] = print) -> None:
+        self.fused, self.say = fused, say
+        self.grids: Dict[int, Optional[GridReads]] = {}
+
+    def read(self, grid, coords: Tensor, stride: int, features: bool) -> Optional[Tensor]:
+        """``GridReads.read`` of ``grid``; None where the kernels do not compile for its component counts (the
+        caller reads with torch)."""
+        if id(grid) not in self.grids:
+            kernels = _training_kernels(self.fused, tuple(grid.components), self.say)
+            self.grids[id(grid)] = None if kernels is None else GridReads(self.fused, grid, kernels)
+        reads = self.grids[id(grid)]
+        return None if reads is None else reads.read(coords, stride, features)
+
+    def close(self) -> None:
+        for reads in self.grids.values():
+            if reads is not None:
+                reads.close()
+        self.grids = {}
