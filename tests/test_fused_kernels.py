@@ -193,7 +193,7 @@ def test_the_feature_read_is_compiled_for_each_set_of_component_counts():
             expected = torch.cat(grid.plane_line_products(coords, 1, False), dim=-1)
             ours = fused_kernels.vm_features(wp, fused_kernels.channels_last(*grid.scale_views(1)), coords)
         assert ours.shape == (700, sum(components)) and torch.allclose(ours, expected, atol=1e-5)
-        reads[components] = fused_kernels._state[("vm_features", components)]
+        reads[components] = fused_kernels._state[("grid_reads", components)]
     assert reads[(5, 3, 2)] is not reads[(7, 1, 4)]  # one kernel per set of counts, kept for the next frame
 
 
@@ -204,10 +204,10 @@ def test_a_feature_read_that_does_not_compile_falls_back_to_the_planes_read_by_t
     def broken(wp_module, components):
         raise RuntimeError("CPU kernel build failed with error code 1")
 
-    monkeypatch.setattr(fused_kernels, "define_vm_features", broken)
+    monkeypatch.setattr(fused_kernels, "define_training_reads", broken)
     monkeypatch.setattr(radiance_field, "BAKED_FEATURES_MAX_ENTRIES", 0)
-    monkeypatch.setitem(fused_kernels._state, ("vm_features", (6, 3, 2)), None)
-    del fused_kernels._state[("vm_features", (6, 3, 2))]  # compiled anew here (and forgotten after the test)
+    monkeypatch.setitem(fused_kernels._state, ("grid_reads", (6, 3, 2)), None)
+    del fused_kernels._state[("grid_reads", (6, 3, 2))]  # compiled anew here (and forgotten after the test)
     field = FrugalNeRFField(AABB_FEATURES, (21, 26, 19), density_components=(2, 2, 2), appearance_components=(6, 3, 2),
                             mlp_hidden_dim=16, mlp_implementation="torch")
     positions = (torch.rand(500, 3, generator=torch.Generator().manual_seed(3)) * 2 - 1) * AABB_FEATURES[1]
@@ -217,7 +217,7 @@ def test_a_feature_read_that_does_not_compile_falls_back_to_the_planes_read_by_t
             ours = field.inference_color(positions, directions, 0, wp)
             assert torch.equal(ours, field.color(positions, directions, 0))
     said = capsys.readouterr().out
-    assert said.count("fused feature read for (6, 3, 2) channels unavailable (RuntimeError: CPU kernel build") == 1
+    assert said.count("fused grid reads for (6, 3, 2) channels unavailable (RuntimeError: CPU kernel build") == 1
 
 
 AABB_FEATURES = torch.tensor([[-1.0, -0.8, -1.2], [1.0, 0.8, 1.2]])

@@ -166,12 +166,12 @@ def test_a_read_that_does_not_compile_falls_back_to_torch_with_one_line(monkeypa
         raise RuntimeError("no compiler here")
 
     monkeypatch.setattr(fused_kernels, "_state", {**fused_kernels._state})
-    fused_kernels._state.pop(("training_reads", (3, 2, 2)), None)
-    monkeypatch.setattr(fused_training_reads, "define_training_reads", broken)
+    fused_kernels._state.pop(("grid_reads", (3, 2, 2)), None)
+    monkeypatch.setattr(fused_kernels, "define_training_reads", broken)
     said = []
     reads = fused_training_reads.StepReads(wp, said.append)
     assert reads.read(TensorVMGrid((8, 8, 8), (3, 2, 2)), torch.zeros(4, 3), 1, False) is None
-    assert said == ["frugalnerf: fused training reads for (3, 2, 2) channels unavailable (RuntimeError: no "
+    assert said == ["frugalnerf: fused grid reads for (3, 2, 2) channels unavailable (RuntimeError: no "
                     "compiler here): reading the planes with torch"]
     field = FrugalNeRFField(BOX, (8, 8, 8), density_components=(3, 2, 2), appearance_components=(3, 2, 2),
                             mlp_hidden_dim=8, mlp_implementation="torch")

@@ -1,11 +1,12 @@
 """The fused kernels' source (NVIDIA Warp), apart from the code that loads and launches them
-(``fused_kernels``): ``density_march`` (the inference marcher's density pass, one thread per ray),
-``outer_composite`` (the space beyond an object's box) and, per component counts, ``vm_features`` (appearance
-features read from channels-last planes and lines: ``define_vm_features``). Each mirrors a torch function that
-stays the reference it is tested against."""
+(``fused_kernels``, ``fused_training_reads``): ``density_march`` (the inference marcher's density pass, one thread per
+ray), ``outer_composite`` (the space beyond an object's box) and, per component counts, the reads of a grid's density
+and appearance features from channels-last planes and lines with their backward (``define_training_reads``; the
+renderer reads its features with them too). Each mirrors a torch function that stays the reference it is tested
+against."""
 
 # No ``from __future__ import annotations``: Warp reads the kernels' annotations, and evaluated at definition they
-# may name the closures' vector types (``define_vm_features``).
+# may name the closures' vector types (``define_training_reads``).
 from typing import Any
 
 
@@ -232,63 +233,15 @@ def define_kernels(wp) -> dict:
     return {"module": density_march.module, "density_march": density_march, "outer_composite": outer_composite}
 
 
-def define_vm_features(wp, components) -> tuple:
-    """(``vm_features``, its three planes' vector types, its row type) for planes and lines of ``components``
-    (XY, XZ, YZ) channels: a kernel of its own (Warp's ``module="unique"``, compiled once per component counts)
-    whose corners are vectors of a plane's channels, so a read is a few vector loads and the arithmetic runs in
-    SIMD (1.7x the same read channel by channel, a scalar loop with a stride per access, on 262,144 points)."""
-    c0, c1, c2 = (int(c) for c in components)
-    vec0, vec1, vec2 = (wp.types.vector(length=c, dtype=wp.float32) for c in (c0, c1, c2))
-    row = wp.types.vector(length=c0 + c1 + c2, dtype=wp.float32)
-    c01 = c0 + c1
-
-    corners = define_corners(wp)
-
-    @wp.func
-    def plane_line(plane: wp.array(dtype=Any), width: int, height: int, line: wp.array(dtype=Any), x: wp.float32,
-                   y: wp.float32, z: wp.float32):
-        # sample_plane (bilinear, align_corners, border) times sample_line (linear), every channel at once.
-        x0, x1, tx = corners(x, width)
-        y0, y1, ty = corners(y, height)
-        z0, z1, tz = corners(z, line.shape[0])
-        value = (plane[y0 * width + x0] * (1.0 - tx) + plane[y0 * width + x1] * tx) * (1.0 - ty) + (
-            plane[y1 * width + x0] * (1.0 - tx) + plane[y1 * width + x1] * tx) * ty
-        return wp.cw_mul(value, line[z0] + (line[z1] - line[z0]) * tz)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def vm_features(
-        coords: wp.array(dtype=wp.vec3),
-        plane0: wp.array(dtype=vec0), width0: int, height0: int, line0: wp.array(dtype=vec0),
-        plane1: wp.array(dtype=vec1), width1: int, height1: int, line1: wp.array(dtype=vec1),
-        plane2: wp.array(dtype=vec2), width2: int, height2: int, line2: wp.array(dtype=vec2),
-        out: wp.array(dtype=row),
-    ):
-        # TensorVMGrid.plane_line_products, concatenated: planes XY, XZ, YZ with lines Z, Y, X (PLANE_AXES).
-        i = wp.tid()
-        c = coords[i]
-        a = plane_line(plane0, width0, height0, line0, c[0], c[1], c[2])
-        b = plane_line(plane1, width1, height1, line1, c[0], c[2], c[1])
-        e = plane_line(plane2, width2, height2, line2, c[1], c[2], c[0])
-        features = row()
-        for k in range(c0):
-            features[k] = a[k]
-        for k in range(c1):
-            features[c0 + k] = b[k]
-        for k in range(c2):
-            features[c01 + k] = e[k]
-        out[i] = features
-
-    return vm_features, (vec0, vec1, vec2), row
-
-
 def define_training_reads(wp, components) -> dict:
-    """A training step's reads of a grid whose planes and lines have ``components`` (XY, XZ, YZ) channels, in a
+    """A training step's reads (and the renderer's feature reads) of a grid whose planes and lines have ``components`` (XY, XZ, YZ) channels, in a
     module of their own per component counts: ``density_read`` (``TensorVMGrid.plane_line_products`` summed over
     planes and channels), ``feature_read`` (the products concatenated: the appearance features) and their backward
     kernels, which add the planes' and lines' gradient into tables; and ``vectors``, ``row``, the three planes'
     vector types and the features' row type. The tensors are channels-last copies of the full planes and lines, read
     at a stride's view's entries times the stride (as ``tensorial.sample_plane`` reads them): a corner is one vector
-    load of a plane's channels."""
+    load of a plane's channels, so a read is a few vector loads and its arithmetic runs in SIMD (1.7x the same read
+    channel by channel, a scalar loop with a stride per access, on 262,144 points)."""
     c0, c1, c2 = (int(c) for c in components)
     vec0, vec1, vec2 = (wp.types.vector(length=c, dtype=wp.float32) for c in (c0, c1, c2))
     row = wp.types.vector(length=c0 + c1 + c2, dtype=wp.float32)

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from frugalnerf_ns.errors import UserError
-from frugalnerf_ns.field.fused_kernel_source import define_kernels, define_vm_features
+from frugalnerf_ns.field.fused_kernel_source import define_kernels, define_training_reads
 
 _state: dict = {}
 _lock = threading.Lock()
@@ -317,20 +317,23 @@ def _rows(x: Tensor, rows: int, columns: int) -> Tensor:
 
 def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Optional[Tensor]:
     """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
-    ``channels_last`` tables, on the CPU; from ``SPLIT_MIN_ROWS`` rows in one part per core (``_parts``; each row
-    is read on its own, so the parts give the rows one launch gives). None where the kernel for these component
-    counts does not compile (said once; the caller reads the planes with torch)."""
+    ``channels_last`` tables, on the CPU (``grid_read_kernels``' ``feature_read``, at stride 1 on the copies of the
+    scale's views); from ``SPLIT_MIN_ROWS`` rows in one part per core (``_parts``; each row is read on its own, so
+    the parts give the rows one launch gives). None where the kernels for these component counts do not compile
+    (said once; the caller reads the planes with torch)."""
     wp = fused.wp
     components = tuple(t[0].shape[1] for t in tables)
-    compiled = _feature_kernel(fused, components)
+    compiled = grid_read_kernels(fused, components)
     if compiled is None:
         return None
-    kernel, vectors, row = compiled
+    kernel, vectors, row = compiled["feature_read"], compiled["vectors"], compiled["row"]
     n = coords.shape[0]
     out = torch.empty(n, sum(components), dtype=torch.float32)
     coords = coords.to(torch.float32).contiguous()
-    shared = [x for (plane, width, height, line), vector in zip(tables, vectors)
-              for x in (wp.from_torch(plane, dtype=vector), width, height, wp.from_torch(line, dtype=vector))]
+    # The views' entries along x, y, z (XY is [Y, X], XZ [Z, X]) and the planes' widths (X, X, Y).
+    (_, width_x, height_y, _), (_, _, height_z, _) = tables[0], tables[1]
+    shared = [wp.vec3i(width_x, height_y, height_z), wp.vec3i(width_x, width_x, height_y), 1]
+    shared += [wp.from_torch(t, dtype=vector) for (plane, _, _, line), vector in zip(tables, vectors) for t in (plane, line)]
 
     def launch(a: int, b: int) -> None:
         wp.launch(kernel, dim=b - a, device="cpu",
@@ -340,16 +343,16 @@ def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Optional[Te
     return out
 
 
-def _feature_kernel(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print):
-    """(kernel, per-plane vector types, row type) of ``vm_features`` for planes of ``components`` channels
-    (``compile_once``)."""
-    return compile_once(fused, ("vm_features", components), lambda: define_vm_features(fused.wp, components),
-                        f"fused feature read for {components} channels", say)
+def grid_read_kernels(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print) -> Optional[dict]:
+    """``define_training_reads``' kernels for planes of ``components`` channels (``compile_once``): the training reads
+    of the density and features with their backward, and the renderer's feature read."""
+    return compile_once(fused, ("grid_reads", components), lambda: define_training_reads(fused.wp, components),
+                        f"fused grid reads for {components} channels", say)
 
 
-def compile_once(fused: WarpKernels, key: tuple, define: Callable[[], tuple], what: str,
-                 say: Callable[[str], None] = print) -> Optional[tuple]:
-    """``define()``'s kernels (a tuple or dict holding them), each kernel's module compiled for the CPU once per
+def compile_once(fused: WarpKernels, key: tuple, define: Callable[[], dict], what: str,
+                 say: Callable[[str], None] = print) -> Optional[dict]:
+    """``define()``'s kernels (a dict holding them, or lists of them), each kernel's module compiled for the CPU once per
     process and ``key`` (Warp caches the build on disk); the first compile said in one line as ``_load_warp`` says
     the module's; None, said once, where they do not compile (the caller reads the planes with torch). ``what``
     names them in those lines."""
@@ -358,8 +361,7 @@ def compile_once(fused: WarpKernels, key: tuple, define: Callable[[], tuple], wh
             try:
                 start = time.perf_counter()
                 compiled = define()
-                parts = [*(compiled.values() if isinstance(compiled, dict) else compiled)]
-                parts = [k for part in parts for k in (part if isinstance(part, list) else [part])]
+                parts = [k for part in compiled.values() for k in (part if isinstance(part, list) else [part])]
                 for module in {id(k.module): k.module for k in parts if isinstance(k, fused.wp.Kernel)}.values():
                     fused.wp.load_module(module, device="cpu")
                 seconds = time.perf_counter() - start

@@ -22,9 +22,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import torch
 from torch import Tensor
 
-from frugalnerf_ns.field import fused_kernels
-from frugalnerf_ns.field.fused_kernel_source import define_training_reads
-from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, _rows, on_every_core
+from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, _rows, grid_read_kernels, on_every_core
 from frugalnerf_ns.field.tensorial import strided_length
 
 SPLIT_MIN_SAMPLES = 1 << 16
@@ -35,13 +33,6 @@ coarsest scale (~21,000 samples) split over the pool made the torch operations r
 SPLIT_MIN_FEATURE_SAMPLES = 1 << 16
 """The same for the appearance features (each sample 72 channels at the presets' components, against the density's
 24)."""
-
-
-def _training_kernels(fused: WarpKernels, components: tuple, say: Callable[[str], None] = print) -> Optional[dict]:
-    """``define_training_reads``' kernels for planes of ``components`` channels (``fused_kernels.compile_once``)."""
-    return fused_kernels.compile_once(fused, ("training_reads", components),
-                                      lambda: define_training_reads(fused.wp, components),
-                                      f"fused training reads for {components} channels", say)
 
 
 def _tables(planes: Sequence[Tensor], lines: Sequence[Tensor]) -> List[Tensor]:
@@ -193,7 +184,7 @@ class StepReads:
         """``GridReads.read`` of ``grid``; None where the kernels do not compile for its component counts (the
         caller reads with torch)."""
         if id(grid) not in self.grids:
-            kernels = _training_kernels(self.fused, tuple(grid.components), self.say)
+            kernels = grid_read_kernels(self.fused, tuple(grid.components), self.say)
             self.grids[id(grid)] = None if kernels is None else GridReads(self.fused, grid, kernels)
         reads = self.grids[id(grid)]
         return None if reads is None else reads.read(coords, stride, features)
