@@ -218,10 +218,15 @@ def marcher_from_tree(tree: Path):
     if not path.is_file():
         sys.exit(f"benchmark_render: error: --before {tree}: no {path} (pass a source tree, e.g. a git worktree)")
     field_path = tree / "frugalnerf_ns" / "field" / "radiance_field.py"
+    before_field = None
     if field_path.is_file():
         from frugalnerf_ns.field import radiance_field
 
-        before_field = _load_private(field_path, "frugalnerf_before_radiance_field")
+        try:
+            before_field = _load_private(field_path, "frugalnerf_before_radiance_field")
+        except ImportError:  # it imports a module this tree has renamed (a recent tree): no methods lent
+            sys.modules.pop("frugalnerf_before_radiance_field", None)
+    if before_field is not None:
         for name, member in vars(before_field.BakedDensity).items():
             if callable(member) and not name.startswith("__") and not hasattr(radiance_field.BakedDensity, name):
                 setattr(radiance_field.BakedDensity, name, member)
