@@ -41,9 +41,10 @@ zero-fill and six matrix products back), the plane reads a cost per sample: on 2
 frugalnerf-cpu's 256^3 grid is 289x321x193 with the spanning sizes (17.9 M nodes): it reads its planes."""
 
 FUSED_READ_MIN_ENTRIES = 2**23
-"""Smallest grid (nodes) whose training steps read the planes' density with the fused kernels (``fused_training_reads``);
-smaller grids read the shared nodes. In whole fern and horns 2-view runs the fused reads made steps at 16.4-17.9 M nodes
-8-19 % faster and at 0.1-4.8 M 5-15 % slower (fixed costs per read: copies, per-core tables, launches)."""
+"""Smallest grid (nodes) whose training steps read the planes (density and appearance) with the fused kernels
+(``fused_training_reads``); smaller grids read density from the shared nodes and the appearance with torch. In whole fern
+and horns 2-view runs the fused density reads made steps at 16.4-17.9 M nodes 8-19 % faster and at 0.1-4.8 M 5-15 %
+slower (fixed costs per read: copies, per-core tables, launches); the appearance reads were not tried below it."""
 
 BAKED_FEATURES_MAX_ENTRIES = 2**27
 """Largest node count times appearance features baked for rendering outside training: 512 MiB in float32
