@@ -137,6 +137,17 @@ def test_reads_split_over_the_cores_equal_one_launch(monkeypatch, features):
 
 
 @needs_warp
+@pytest.mark.parametrize("features", [False, True])
+def test_a_plane_gradient_turned_channels_first_in_parts(monkeypatch, features):
+    components = (3, 2, 2)
+    grid, coords = grid_and_points((210, 190, 9), components, n=5000)  # the XY plane: 39,900 rows
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    assert len(fused_kernels._parts(210 * 190, fused_training_reads.CHANNELS_FIRST_SPLIT_ROWS)) == 2
+    reads = [(coords, 1, False, weights_for(coords, features, components))]
+    assert_same(fused_reads(grid, reads, features), torch_reads(grid, reads, features))
+
+
+@needs_warp
 def test_reads_without_gradient_add_none_and_a_closed_block_leaves_nothing_alive():
     grid, coords = grid_and_points((12, 10, 8), (3, 2, 2), n=300)
     step = fused_training_reads.StepReads(wp)

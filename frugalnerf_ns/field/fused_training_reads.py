@@ -34,6 +34,9 @@ SPLIT_MIN_FEATURE_SAMPLES = 1 << 16
 """The same for the appearance features (each sample 72 channels at the presets' components, against the density's
 24)."""
 
+CHANNELS_FIRST_SPLIT_ROWS = 1 << 15
+"""Rows of a gradient table from which its channels-first copy runs one launch per core."""
+
 
 def _tables(planes: Sequence[Tensor], lines: Sequence[Tensor]) -> List[Tensor]:
     """Channels-last float32 copies: each plane [1, C, H, W] as [H*W, C], each line [1, C, L, 1] as [L, C]."""
@@ -125,15 +128,19 @@ class GridReads:
         tables = list(self.gradients.values())
         self.gradients = {}
         wp, vectors = self.fused.wp, self.kernels["vectors"]
+
+        def channels_first(table: Tensor, plane: int, out: Tensor, a: int, b: int) -> None:
+            wp.launch(self.kernels["channels_first"][plane], dim=b - a, device="cpu",
+                      inputs=[wp.from_torch(table[a:b], dtype=vectors[plane]), wp.from_torch(out[:, a:b])])
+
         results = []
         for k, parts in enumerate(zip(*tables)):
             summed = parts[0]
             for other in parts[1:]:
                 summed += other
             out = torch.empty(summed.shape[1], summed.shape[0], dtype=torch.float32)
-            launch = [(lambda a=a, b=b: wp.launch(self.kernels["channels_first"][k // 2], dim=b - a, device="cpu", inputs=[
-                wp.from_torch(summed[a:b], dtype=vectors[k // 2]), wp.from_torch(out[:, a:b])])) for a, b in _parts(summed.shape[0], 1 << 15)]
-            on_every_core(launch)
+            on_every_core([(lambda t=summed, o=out, p=k // 2, a=a, b=b: channels_first(t, p, o, a, b))
+                           for a, b in _parts(summed.shape[0], CHANNELS_FIRST_SPLIT_ROWS)])
             results.append(out)
         # The tables are plane, line per pair; the parameters the planes, then the lines. [H*W, C] -> [1, C, H, W]
         # and [L, C] -> [1, C, L, 1].
