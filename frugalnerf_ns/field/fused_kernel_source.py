@@ -270,19 +270,19 @@ def define_training_reads(wp, components) -> dict:
         # d(plane * line) / d corners, channel by channel, for the products' gradient ``grad``: the line's value
         # times each plane corner's weight, the plane's value times each line entry's weight; added into this
         # launch's own gradient tables.
+        # (The corners again: plane_line's are inlined beside them, and the compiler computes them once.)
+        plane_value, line_value = plane_line(plane, row, width, height, line, length, stride, x, y, z)
         x0, x1, tx = corners(x, width)
         y0, y1, ty = corners(y, height)
         z0, z1, tz = corners(z, length)
         r0 = y0 * stride * row
         r1 = y1 * stride * row
-        near = line[z0 * stride]
-        by_line = wp.cw_mul(near + (line[z1 * stride] - near) * tz, grad)
+        by_line = wp.cw_mul(line_value, grad)
         wp.atomic_add(plane_grad, r0 + x0 * stride, by_line * ((1.0 - tx) * (1.0 - ty)))
         wp.atomic_add(plane_grad, r0 + x1 * stride, by_line * (tx * (1.0 - ty)))
         wp.atomic_add(plane_grad, r1 + x0 * stride, by_line * ((1.0 - tx) * ty))
         wp.atomic_add(plane_grad, r1 + x1 * stride, by_line * (tx * ty))
-        by_plane = wp.cw_mul((plane[r0 + x0 * stride] * (1.0 - tx) + plane[r0 + x1 * stride] * tx) * (1.0 - ty) + (
-            plane[r1 + x0 * stride] * (1.0 - tx) + plane[r1 + x1 * stride] * tx) * ty, grad)
+        by_plane = wp.cw_mul(plane_value, grad)
         wp.atomic_add(line_grad, z0 * stride, by_plane * (1.0 - tz))
         wp.atomic_add(line_grad, z1 * stride, by_plane * tz)
 

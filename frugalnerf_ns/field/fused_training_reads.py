@@ -22,7 +22,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import torch
 from torch import Tensor
 
-from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, _rows, grid_read_kernels, on_every_core
+from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, channels_last, grid_read_kernels, on_every_core
 from frugalnerf_ns.field.tensorial import strided_length
 
 SPLIT_MIN_SAMPLES = 1 << 16
@@ -39,13 +39,10 @@ CHANNELS_FIRST_SPLIT_ROWS = 1 << 15
 
 
 def _tables(planes: Sequence[Tensor], lines: Sequence[Tensor]) -> List[Tensor]:
-    """Channels-last float32 copies: each plane [1, C, H, W] as [H*W, C], each line [1, C, L, 1] as [L, C]."""
-    tables = []
-    for plane, line in zip(planes, lines):
-        _, comps, height, width = plane.shape
-        tables.append(_rows(plane.detach()[0].permute(1, 2, 0), height * width, comps))
-        tables.append(_rows(line.detach()[0, :, :, 0].T, line.shape[2], comps))
-    return tables
+    """Channels-last float32 copies (``fused_kernels.channels_last``): each plane [1, C, H, W] as [H*W, C], each line
+    [1, C, L, 1] as [L, C], in that order per pair."""
+    pairs = channels_last([p.detach() for p in planes], [line.detach() for line in lines])
+    return [table for plane, _, _, line in pairs for table in (plane, line)]
 
 
 class GridReads:
@@ -82,15 +79,18 @@ class GridReads:
         rows = wp.vec3i(self.full[0], self.full[0], self.full[1])
         return [sizes, rows, stride, *[wp.from_torch(t, dtype=vectors[k // 2]) for k, t in enumerate(self.tables)]]
 
+    def _kernel(self, features: bool, backward: bool) -> tuple:
+        """The kernel, the Warp type of a read's value (and of its gradient) and the samples from which it splits."""
+        name = ("feature_read" if features else "density_read") + ("_backward" if backward else "")
+        if features:
+            return self.kernels[name], self.kernels["row"], SPLIT_MIN_FEATURE_SAMPLES
+        return self.kernels[name], self.fused.wp.float32, SPLIT_MIN_SAMPLES
+
     def values(self, coords: Tensor, stride: int, features: bool) -> Tensor:
         wp, n = self.fused.wp, coords.shape[0]
         shared = self._arguments(stride)
-        if features:
-            kernel, dtype = self.kernels["feature_read"], self.kernels["row"]
-            out, split = torch.empty(n, sum(self.components), dtype=torch.float32), SPLIT_MIN_FEATURE_SAMPLES
-        else:
-            kernel, dtype = self.kernels["density_read"], wp.float32
-            out, split = torch.empty(n, dtype=torch.float32), SPLIT_MIN_SAMPLES
+        kernel, dtype, split = self._kernel(features, backward=False)
+        out = torch.empty((n, sum(self.components)) if features else (n,), dtype=torch.float32)
 
         def launch(a: int, b: int) -> None:
             wp.launch(kernel, dim=b - a, device="cpu", inputs=[
@@ -104,10 +104,7 @@ class GridReads:
         wp, vectors = self.fused.wp, self.kernels["vectors"]
         grad = grad.detach().to(torch.float32).contiguous()
         shared = self._arguments(stride)
-        if features:
-            kernel, dtype, split = self.kernels["feature_read_backward"], self.kernels["row"], SPLIT_MIN_FEATURE_SAMPLES
-        else:
-            kernel, dtype, split = self.kernels["density_read_backward"], wp.float32, SPLIT_MIN_SAMPLES
+        kernel, dtype, split = self._kernel(features, backward=True)
         parts = _parts(coords.shape[0], split)
         for part in range(len(parts)):
             if part not in self.gradients:

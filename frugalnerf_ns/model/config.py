@@ -82,8 +82,8 @@ class FrugalNeRFSettings(ModelConfig):
     """Fused kernels (NVIDIA Warp, compiled at first use) for rendering without gradients on the CPU: the density
     march, the appearance reads of a grid too large to bake and the space beyond the box; and in training on the
     CPU, the density and appearance reads of a large grid's planes and lines with their backward (from 2^23 nodes;
-    the density in place of ``training_density_read``'s nodes). torch: the reference path. auto: Warp where it imports and compiles, else
-    torch with one line."""
+    the density in place of ``training_density_read``'s nodes). torch: the reference path. auto: Warp where it
+    imports and compiles, else torch with one line."""
     mlp_hidden_dim: int = 128
     """Width of the colour MLP."""
     feature_pe: int = 0

@@ -281,10 +281,11 @@ class FrugalNeRFModel(Model):
         groups = None if groups is None else groups.reshape(-1)
         # A training step on the CPU reads a large grid's planes with the fused kernels where they compile, else
         # density from nodes shared by its scales (outside training the marcher bakes them).
-        fused = self.training and not inference and origins.is_cpu and self.field.fused_reads_pay()
-        density_kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
-        shared_nodes = self.training and not inference and cfg.training_density_read == "nodes" and density_kernels is None
-        with self.field.shared_density_nodes(shared_nodes), self.field.fused_training_reads(density_kernels):
+        training = self.training and not inference
+        fused = training and origins.is_cpu and self.field.fused_reads_pay()
+        read_kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
+        shared_nodes = training and cfg.training_density_read == "nodes" and read_kernels is None
+        with self.field.shared_density_nodes(shared_nodes), self.field.fused_training_reads(read_kernels):
             for scale in range(self._scales_to_render()):
                 with record_function(f"render_scale{scale}"):  # named stages for torch.profiler (frugalnerf-bench profile)
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
