@@ -1,11 +1,13 @@
 """The inference marcher (blocks of samples, rays dropped when they leave the box or turn opaque) against the
 training marcher it replaces outside training: same pixels, far fewer density lookups."""
 
+import math
+
 import pytest
 import torch
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
-from frugalnerf_ns.geometry.raymarch import intersect_aabb
+from frugalnerf_ns.geometry.raymarch import MAX_OPTICAL_DEPTH, intersect_aabb
 from frugalnerf_ns.model.rendering import (
     FAINT_BUDGET,
     FAINT_WEIGHT,
@@ -71,6 +73,36 @@ def test_early_termination_changes_no_pixel_by_a_level_and_skips_lookups(scale, 
     assert sum(looked_up) <= dense.t.shape[0] * dense.slots
     if scale == 0:
         assert sum(looked_up) < 0.3 * dense.t.numel()
+
+
+def _kernels_if_any(name):
+    if name == "torch":
+        return None
+    pytest.importorskip("warp")
+    from frugalnerf_ns.field import fused_kernels
+
+    return fused_kernels.warp_kernels("warp")
+
+
+@pytest.mark.parametrize("marcher", ["torch", "warp"])
+def test_a_ray_ends_at_the_slot_where_its_transmittance_falls_below_the_termination(marcher):
+    # The accumulation of each ray is the sum of the dense weights of the slots marched before its optical depth
+    # reached -log(termination): not one slot more, however the slots are blocked (blocks of 32 slots here).
+    field, origins, directions, segments, background = masked_slab_scene()
+    termination = TERMINATION_TRANSMITTANCE
+    with torch.no_grad():
+        dense = render_scale(field, origins, directions, 0, background, segments, **SETTINGS, jitter=False)
+        fast = render_scale_inference(field, origins, directions, 0, background, segments, **SETTINGS, block=32,
+                                      termination=termination, faint_budget=0.0, kernels=_kernels_if_any(marcher))
+    delta = field.sample_step(0, SETTINGS["step_ratio"]) * SETTINGS["distance_scale"]
+    optical = (dense.densities.double() * delta).clamp(0.0, MAX_OPTICAL_DEPTH)
+    before = optical.cumsum(-1) - optical
+    expected = torch.where(before < -math.log(termination), dense.weights.double(), 0.0).sum(-1)
+    ended = expected > 1 - termination
+    assert int(ended.sum()) > 100  # most rays turn opaque in the slab
+    assert torch.allclose(fast.accumulation[:, 0].double(), expected, atol=2e-6)
+    # Marching the rest of a block would have added up to ``termination`` more.
+    assert float((dense.accumulation[ended, 0] - fast.accumulation[ended, 0]).max()) > 1e-5
 
 
 def test_faint_samples_left_out_are_a_prefix_of_each_rays_faint_ones_within_the_budget():

@@ -112,7 +112,10 @@ def define_kernels(wp) -> dict:
         running = wp.float32(0.0)
         rank = int(0)
         count = int(0)
+        finished = bool(False)
         for g in range(num_groups):
+            if finished:
+                break
             # The group's first slot in the segment, and density possible somewhere in it (occupied_groups).
             wanted = near + (float(g * group) + 0.5) * step < far
             centre = near + (float(g * group) + 0.5 * float(group)) * step
@@ -127,6 +130,8 @@ def define_kernels(wp) -> dict:
                     running = left
                 rank += 1
                 for k in range(group):
+                    if finished:
+                        break
                     i = g * group + k
                     t = near + (float(i) + 0.5) * step
                     if i < num_samples and t < far:
@@ -135,10 +140,15 @@ def define_kernels(wp) -> dict:
                         if occupied(p, box_min, box_max, mask, has_mask, mask_min, mask_max, mask_res, mask_strides):
                             density = read_density(grid, p, grid_a, grid_b, relu)
                         tau = wp.clamp(density * delta, 0.0, max_optical)
-                        w = (1.0 - wp.exp(-tau)) * wp.exp(-optical_sum)
-                        optical_sum = optical_sum + tau
-                        accumulation = accumulation + w
-                        weighted_t = weighted_t + w * t
+                        # A slot without density adds nothing (its weight is exactly 0): no exps.
+                        w = wp.float32(0.0)
+                        if tau > 0.0:
+                            w = (1.0 - wp.exp(-tau)) * wp.exp(-optical_sum)
+                            optical_sum = optical_sum + tau
+                            accumulation = accumulation + w
+                            weighted_t = weighted_t + w * t
+                            if optical_sum >= stop_optical:
+                                finished = True
                         if w > weight_threshold:
                             shade = True
                             if faint_budget > 0.0 and w < faint_weight:

@@ -6,8 +6,8 @@ the fallback (``--pipeline.model.kernels``).
 the slots of the ray's occupied groups in order, the box and alpha-mask test, the trilinear read of the baked
 density grid (``BakedDensity.read``: grid_sample's corner-aligned, border-clamped rule), the activation, the
 optical depth, the compositing weight from the summed optical depths, the faint-sample budget and the
-termination, with the torch marcher's block structure (termination and the faint budget's running sum are
-decided per block of ``per_block`` groups, as there). It writes each ray's accumulated weight and weighted t and
+termination, with the torch marcher's rules (a ray ends at the slot where its transmittance falls below the
+termination; the faint budget's running sum restarts per block of ``per_block`` groups, as there). It writes each ray's accumulated weight and weighted t and
 the samples to shade (t, weight) in the ray's share of one list; the colour MLP stays in torch. The torch marcher spends most of a
 frame in a few dozen element-wise passes over every marched slot and in the bookkeeping of its packed rays;
 here a slot costs one pass of registers and a ray stops where it terminates.

@@ -292,6 +292,9 @@ def render_scale_inference(
         density = field_.occupied_density(positions.view(-1, 3), scale).view_as(t).to(compute)
         in_segment = marched & (t < t_far[:, None]) & (index < num_samples)
         optical = torch.where(in_segment, (density * delta).clamp(0.0, MAX_OPTICAL_DEPTH), 0.0)
+        # A ray ends at the slot where its transmittance falls below ``termination``: the slots after it add nothing.
+        before = optical_sum[:, None] + optical.cumsum(dim=-1) - optical
+        optical = torch.where(before < stop_optical, optical, 0.0)
         weights, optical_sum = transmittance_weights(optical, optical_sum)
         ray_sums[:, 0] += weights.sum(dim=-1)
         ray_sums[:, 1] += (weights * t).sum(dim=-1)
