@@ -93,6 +93,28 @@ def test_dry_run_of_the_in_process_parts_writes_table_and_json(tmp_path, capsys)
     assert "| presets | frugalnerf-tiny | procedural |" in printed and f"{len(summary['rows'])}/{len(summary['rows'])} rows ok" in printed
 
 
+def test_dry_run_of_the_kernels_part_compares_every_kernel_with_torch(tmp_path):
+    pytest.importorskip("warp")
+    assert gpu_check.main(["--dry-run", "--parts", "kernels", "--out", str(tmp_path)]) == 0
+    rows = {row["preset"]: row for row in json.loads((tmp_path / "gpu_check.json").read_text())["rows"]}
+    assert set(rows) == {"march", "reads", "outer"} and all(row["ok"] for row in rows.values())
+    assert rows["march"]["max_difference"] < 1 / 255 and rows["outer"]["max_difference"] < 1 / 255
+    assert rows["reads"]["max_relative_gradient_difference"] < 1e-4
+    assert all(row["s_fused"] > 0 and row["s_torch"] > 0 for row in rows.values())
+
+
+def test_the_kernels_part_without_warp_is_one_failed_row(monkeypatch):
+    from frugalnerf_ns.bench import kernel_check
+    from frugalnerf_ns.field import fused_kernels
+
+    def unavailable(choice, say=print):
+        say("frugalnerf: fused kernels unavailable (ImportError: no module named warp)")
+
+    monkeypatch.setattr(fused_kernels, "warp_kernels", unavailable)
+    (row,) = kernel_check.part_kernels(None, torch.device("cpu"), {})
+    assert not row["ok"] and "no module named warp" in row["error"]
+
+
 @pytest.mark.slow
 def test_dry_run_of_every_part(tmp_path):
     # Through the path the device machine's instructions name (scripts/gpu_check.py -> frugalnerf-bench gpu-check).

@@ -19,6 +19,9 @@ Parts (``--parts``, all by default):
               24 GB card (fitted a + b R^2 on max_memory_reserved, 1 GiB kept for the CUDA context).
   tcnn        if tinycudann imports: its colour MLP against the torch MLP given the same weights (outputs within
               fp16 tolerance) and their speed.
+  kernels     the fused kernels (NVIDIA Warp, compiled by NVRTC) on this device against the torch path there: the
+              inference march and feature reads, a training step's reads with their backward, the space beyond a
+              box (``bench/kernel_check.py``): equal within 1/255 (pixels) or 1e-4 (gradients), and their times.
 
 Without CUDA (and without --dry-run) it says so in one line and exits 0.
 """
@@ -47,12 +50,13 @@ from frugalnerf_ns.bench.device_probes import (
     timed,
     walk,
 )
+from frugalnerf_ns.bench.kernel_check import part_kernels
 from frugalnerf_ns.bench.report import write_report
 from frugalnerf_ns.run.stepping import run_steps
 from frugalnerf_ns.tools.sweep.grid import ROOT
 
 
-PARTS = ("presets", "paper", "speed", "grid_sample", "memory", "tcnn")
+PARTS = ("presets", "paper", "speed", "grid_sample", "memory", "tcnn", "kernels")
 PAPER_TARGET = {"psnr": 17.4, "ssim": 0.47, "lpips": 0.41, "train_seconds": 300.0}
 SPEED_TARGET = 1.3
 CONSUMER_CARD_GIB = 24.0
@@ -388,7 +392,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if "fern" in args.scenes and (args.fern / "poses_bounds.npy").exists():
             scenes["fern"] = {"data": args.fern, "train_views": (6, 13)}
         parts = {"presets": part_presets, "paper": part_paper, "speed": part_speed, "grid_sample": part_grid_sample,
-                 "memory": part_memory, "tcnn": part_tcnn}
+                 "memory": part_memory, "tcnn": part_tcnn, "kernels": part_kernels}
         rows: List[Dict[str, Any]] = []
         started = time.time()
         for name in args.parts:

@@ -42,6 +42,9 @@ MARCH_BLOCK_RAYS = 4096
 """Rays per ``density_march`` launch in ``density_march_blocks``: a launch allocates each ray's upper bound of samples
 to shade (up to ``num_samples`` floats twice per ray), so blocks keep that list to tens of MB at any chunk size."""
 
+CUDA_MARCH_BLOCK_RAYS = 1 << 18
+"""The same on a GPU, one block after another: enough rays per launch to fill the device."""
+
 SPLIT_MIN_ROWS = 16384
 """``vm_features`` and ``outer_composite`` split their rows over the pool from this many (below it one launch costs
 less than the hand-off)."""
@@ -179,21 +182,21 @@ def density_march(
     volumes a group is looked up in (``BakedDensity.group_bounds``, at most two); ``inside_mask``: (padded flat
     mask, its aabb, its unpadded shape, the padded strides) or None."""
     wp, kernel = fused.wp, fused.kernels["density_march"]
-    rays = o.shape[0]
+    rays, device = o.shape[0], o.device
     num_groups = -(-num_samples // group)
     # A ray shades at most the slots of the groups that start in its segment (one more against rounding).
     in_segment = ((t_far - t_near) / step).floor().clamp(0, num_groups * group - 1).to(torch.int64) + 1
-    bound = torch.minimum(-(-in_segment // group) * group, torch.tensor(num_groups * group))
-    starts = torch.zeros(rays + 1, dtype=torch.int64)
+    bound = torch.minimum(-(-in_segment // group) * group, torch.tensor(num_groups * group, device=device))
+    starts = torch.zeros(rays + 1, dtype=torch.int64, device=device)
     torch.cumsum(bound, 0, out=starts[1:])
     total = int(starts[-1])
-    sums = torch.zeros(rays, 3, dtype=torch.float32)
-    shade_t = torch.empty(max(total, 1), dtype=torch.float32)
-    shade_w = torch.empty(max(total, 1), dtype=torch.float32)
+    sums = torch.zeros(rays, 3, dtype=torch.float32, device=device)
+    shade_t = torch.empty(max(total, 1), dtype=torch.float32, device=device)
+    shade_w = torch.empty(max(total, 1), dtype=torch.float32, device=device)
     grid = baked.grid[0, 0].to(torch.float32).contiguous()
     grid_a, grid_b = (wp.vec3(*[float(v) for v in x]) for x in (baked.grid_a, baked.grid_b))
     if inside_mask is None:
-        mask, has_mask = torch.zeros(1, dtype=torch.uint8), 0
+        mask, has_mask = torch.zeros(1, dtype=torch.uint8, device=device), 0
         mask_min = mask_max = wp.vec3(0.0, 0.0, 0.0)
         res = strides = wp.vec3i(1, 1, 1)
     else:
@@ -217,7 +220,7 @@ def density_march(
                 f"keep{k}": volume,  # alive while the kernel reads it
             })
         else:
-            volumes.update({f"occupancy{k}": wp.from_torch(torch.zeros(1, dtype=torch.uint8)),
+            volumes.update({f"occupancy{k}": wp.from_torch(torch.zeros(1, dtype=torch.uint8, device=device)),
                             f"entries{k}": wp.vec3i(1, 1, 1), f"a{k}": wp.vec3(0.0, 0.0, 0.0),
                             f"b{k}": wp.vec3(0.0, 0.0, 0.0), f"to_index{k}": wp.vec3(0.0, 0.0, 0.0), f"rounding{k}": 0})
     outputs_at = starts[:-1].to(torch.int32)
@@ -239,35 +242,60 @@ def density_march(
             t_near=wp.from_torch(t_near), t_far=wp.from_torch(t_far), outputs_at=wp.from_torch(outputs_at),
             sums=wp.from_torch(sums),
         )
-        wp.launch(kernel, dim=rays, inputs=_ordered(kernel, inputs, shared), device="cpu")
+        launch(fused, kernel, rays, _ordered(kernel, inputs, shared), device)
     if total == 0:
-        empty = torch.zeros(0, dtype=torch.float32)
-        return MarchResult(sums[:, 0], sums[:, 1], torch.zeros(0, dtype=torch.int64), empty, empty)
+        empty = torch.zeros(0, dtype=torch.float32, device=device)
+        return MarchResult(sums[:, 0], sums[:, 1], torch.zeros(0, dtype=torch.int64, device=device), empty, empty)
     # Each ray's rows are the first ``count`` of its share of the list: gathered in O(samples shaded).
     counts = sums[:, 2].to(torch.int64)
     shaded = int(counts.sum())
-    ray_of_row = torch.repeat_interleave(torch.arange(rays), counts, output_size=shaded)
+    ray_of_row = torch.repeat_interleave(torch.arange(rays, device=device), counts, output_size=shaded)
     first_of_ray = torch.cumsum(counts, 0) - counts
-    rows = torch.arange(shaded) + (starts[:-1] - first_of_ray)[ray_of_row]
+    rows = torch.arange(shaded, device=device) + (starts[:-1] - first_of_ray)[ray_of_row]
     return MarchResult(sums[:, 0], sums[:, 1], ray_of_row, shade_t[rows], shade_w[rows])
 
 
 def density_march_blocks(fused: WarpKernels, baked, aabb: Tensor, inside_mask, o: Tensor, d: Tensor, t_near: Tensor,
                          t_far: Tensor, *settings) -> MarchResult:
-    """``density_march`` over blocks of ``MARCH_BLOCK_RAYS`` rays on every core (``on_every_core``), joined in ray
-    order: the same result as one launch over all rays (each ray is marched on its own; ``settings`` — the group
+    """``density_march`` over blocks of ``MARCH_BLOCK_RAYS`` rays on every core (``on_every_core``; on a GPU blocks of
+    ``CUDA_MARCH_BLOCK_RAYS`` in turn), joined in ray order: the same result as one launch over all rays (each ray is marched on its own; ``settings`` — the group
     bounds and the rest of ``density_march``'s arguments — are the same for every block)."""
-    block_rays = max(1, MARCH_BLOCK_RAYS)
+    block_rays = max(1, MARCH_BLOCK_RAYS if o.device.type == "cpu" else CUDA_MARCH_BLOCK_RAYS)
     starts = range(0, o.shape[0], block_rays)
     if len(starts) <= 1:
         return density_march(fused, baked, aabb, inside_mask, o, d, t_near, t_far, *settings)
-    parts = on_every_core([
+    parts = run_jobs(o.device, [
         (lambda a=a: density_march(fused, baked, aabb, inside_mask, o[a:a + block_rays], d[a:a + block_rays],
                                    t_near[a:a + block_rays], t_far[a:a + block_rays], *settings))
         for a in starts])
     rays = [part.rays + a for part, a in zip(parts, starts)]
     return MarchResult(*(torch.cat(x) for x in ([p.accumulation for p in parts], [p.weighted_t for p in parts], rays,
                                                  [p.t for p in parts], [p.weights for p in parts])))
+
+
+def launch(fused: WarpKernels, kernel, dim: int, inputs: list, device: torch.device) -> None:
+    """``wp.launch`` on the tensors' ``device``: the CPU, or a CUDA device on torch's current stream there (ordered
+    with torch's work on that stream, as a torch operation is)."""
+    wp = fused.wp
+    if device.type == "cuda":
+        wp.launch(kernel, dim=dim, inputs=inputs, device=wp.device_from_torch(device),
+                  stream=wp.stream_from_torch(torch.cuda.current_stream(device)))
+    else:
+        wp.launch(kernel, dim=dim, inputs=inputs, device="cpu")
+
+
+def run_jobs(device: torch.device, jobs: list) -> list:
+    """The jobs' results, in order: on the CPU on every core (``on_every_core``), on a GPU one after another (each
+    launch fills the device)."""
+    return on_every_core(jobs) if device.type == "cpu" else [job() for job in jobs]
+
+
+def in_parts(device: torch.device, n: int, launch_part: Callable[[int, int], None],
+             min_rows: Optional[int] = None) -> None:
+    """``launch_part(a, b)`` over row ranges covering n rows: on the CPU one per core from ``min_rows`` rows
+    (``_parts``, on ``on_every_core``), on a GPU one launch (the device runs its threads in parallel itself)."""
+    ranges = _parts(n, min_rows) if device.type == "cpu" else [(0, n)] if n > 0 else []
+    run_jobs(device, [(lambda a=a, b=b: launch_part(a, b)) for a, b in ranges])
 
 
 def _ordered(kernel, inputs: dict, shared: dict) -> list:
@@ -281,20 +309,20 @@ def outer_composite(fused: WarpKernels, table: Tensor, dims, centre: Tensor, hal
     """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU, in one part
     per core from ``SPLIT_MIN_ROWS`` rays (``_parts``): [rays, 5] accumulation, colour sum (3), disparity sum."""
     wp, kernel = fused.wp, fused.kernels["outer_composite"]
-    rays = origins.shape[0]
-    sums = torch.zeros(rays, 5, dtype=torch.float32)
+    rays, device = origins.shape[0], origins.device
+    sums = torch.zeros(rays, 5, dtype=torch.float32, device=device)
     o, d = origins.to(torch.float32).contiguous(), directions.to(torch.float32).contiguous()
     edges, t = edges.to(torch.float32).contiguous(), t.to(torch.float32).contiguous()
     table = table.to(torch.float32).contiguous()
     shared = [wp.from_torch(table), wp.vec3i(*[int(v) for v in dims]), wp.vec3(*[float(v) for v in centre]),
               wp.vec3(*[float(v) for v in half]), float(distance_scale), float(max_optical)]
 
-    def launch(a: int, b: int) -> None:
-        wp.launch(kernel, dim=b - a, device="cpu", inputs=[
+    def launch_part(a: int, b: int) -> None:
+        launch(fused, kernel, b - a, [
             wp.from_torch(o[a:b], dtype=wp.vec3), wp.from_torch(d[a:b], dtype=wp.vec3), wp.from_torch(edges[a:b]),
-            wp.from_torch(t[a:b]), *shared, wp.from_torch(sums[a:b])])
+            wp.from_torch(t[a:b]), *shared, wp.from_torch(sums[a:b])], device)
 
-    on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(rays)])
+    in_parts(device, rays, launch_part)
     return sums
 
 
@@ -327,19 +355,19 @@ def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Optional[Te
     if compiled is None:
         return None
     kernel, vectors, row = compiled["feature_read"], compiled["vectors"], compiled["row"]
-    n = coords.shape[0]
-    out = torch.empty(n, sum(components), dtype=torch.float32)
+    n, device = coords.shape[0], coords.device
+    out = torch.empty(n, sum(components), dtype=torch.float32, device=device)
     coords = coords.to(torch.float32).contiguous()
     # The views' entries along x, y, z (XY is [Y, X], XZ [Z, X]) and the planes' widths (X, X, Y).
     (_, width_x, height_y, _), (_, _, height_z, _) = tables[0], tables[1]
     shared = [wp.vec3i(width_x, height_y, height_z), wp.vec3i(width_x, width_x, height_y), 1]
     shared += [wp.from_torch(t, dtype=vector) for (plane, _, _, line), vector in zip(tables, vectors) for t in (plane, line)]
 
-    def launch(a: int, b: int) -> None:
-        wp.launch(kernel, dim=b - a, device="cpu",
-                  inputs=[wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b], dtype=row)])
+    def launch_part(a: int, b: int) -> None:
+        launch(fused, kernel, b - a,
+               [wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b], dtype=row)], device)
 
-    on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(n)])
+    in_parts(device, n, launch_part)
     return out
 
 

@@ -22,7 +22,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import torch
 from torch import Tensor
 
-from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, channels_last, grid_read_kernels, on_every_core
+from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, channels_last, grid_read_kernels, in_parts, launch, run_jobs
 from frugalnerf_ns.field.tensorial import strided_length
 
 SPLIT_MIN_SAMPLES = 1 << 16
@@ -90,13 +90,13 @@ class GridReads:
         wp, n = self.fused.wp, coords.shape[0]
         shared = self._arguments(stride)
         kernel, dtype, split = self._kernel(features, backward=False)
-        out = torch.empty((n, sum(self.components)) if features else (n,), dtype=torch.float32)
+        out = torch.empty((n, sum(self.components)) if features else (n,), dtype=torch.float32, device=coords.device)
 
-        def launch(a: int, b: int) -> None:
-            wp.launch(kernel, dim=b - a, device="cpu", inputs=[
-                wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b], dtype=dtype)])
+        def launch_part(a: int, b: int) -> None:
+            launch(self.fused, kernel, b - a, [
+                wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(out[a:b], dtype=dtype)], coords.device)
 
-        on_every_core([(lambda a=a, b=b: launch(a, b)) for a, b in _parts(n, split)])
+        in_parts(coords.device, n, launch_part, split)
         return out
 
     def add_gradient(self, coords: Tensor, stride: int, features: bool, grad: Tensor) -> None:
@@ -105,17 +105,20 @@ class GridReads:
         grad = grad.detach().to(torch.float32).contiguous()
         shared = self._arguments(stride)
         kernel, dtype, split = self._kernel(features, backward=True)
-        parts = _parts(coords.shape[0], split)
+        # On a GPU one launch adds into one set of tables (its adds are atomic there).
+        n = coords.shape[0]
+        parts = _parts(n, split) if coords.is_cpu else [(0, n)] if n else []
         for part in range(len(parts)):
             if part not in self.gradients:
                 self.gradients[part] = [torch.zeros_like(t) for t in self.tables]
 
-        def launch(part: int, a: int, b: int) -> None:
+        def launch_part(part: int, a: int, b: int) -> None:
             own = [wp.from_torch(g, dtype=vectors[k // 2]) for k, g in enumerate(self.gradients[part])]
-            wp.launch(kernel, dim=b - a, device="cpu", inputs=[
-                wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(grad[a:b], dtype=dtype), *own])
+            launch(self.fused, kernel, b - a, [
+                wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(grad[a:b], dtype=dtype), *own],
+                coords.device)
 
-        on_every_core([(lambda p=p, a=a, b=b: launch(p, a, b)) for p, (a, b) in enumerate(parts)])
+        run_jobs(coords.device, [(lambda p=p, a=a, b=b: launch_part(p, a, b)) for p, (a, b) in enumerate(parts) if b > a])
 
     def take_gradients(self) -> List[Optional[Tensor]]:
         """The planes' and lines' gradients in their own shapes (the tables summed), then forget them; None each
@@ -127,17 +130,17 @@ class GridReads:
         wp, vectors = self.fused.wp, self.kernels["vectors"]
 
         def channels_first(table: Tensor, plane: int, out: Tensor, a: int, b: int) -> None:
-            wp.launch(self.kernels["channels_first"][plane], dim=b - a, device="cpu",
-                      inputs=[wp.from_torch(table[a:b], dtype=vectors[plane]), wp.from_torch(out[:, a:b])])
+            launch(self.fused, self.kernels["channels_first"][plane], b - a,
+                   [wp.from_torch(table[a:b], dtype=vectors[plane]), wp.from_torch(out[:, a:b])], table.device)
 
         results = []
         for k, parts in enumerate(zip(*tables)):
             summed = parts[0]
             for other in parts[1:]:
                 summed += other
-            out = torch.empty(summed.shape[1], summed.shape[0], dtype=torch.float32)
-            on_every_core([(lambda t=summed, o=out, p=k // 2, a=a, b=b: channels_first(t, p, o, a, b))
-                           for a, b in _parts(summed.shape[0], CHANNELS_FIRST_SPLIT_ROWS)])
+            out = torch.empty(summed.shape[1], summed.shape[0], dtype=torch.float32, device=summed.device)
+            in_parts(summed.device, summed.shape[0],
+                     lambda a, b, t=summed, o=out, p=k // 2: channels_first(t, p, o, a, b), CHANNELS_FIRST_SPLIT_ROWS)
             results.append(out)
         # The tables are plane, line per pair; the parameters the planes, then the lines. [H*W, C] -> [1, C, H, W]
         # and [L, C] -> [1, C, L, 1].
@@ -152,7 +155,7 @@ class _GridGradient(torch.autograd.Function):
     @staticmethod
     def forward(ctx, reads: GridReads, *parameters: Tensor) -> Tensor:  # type: ignore[override]
         ctx.reads = reads
-        return torch.zeros((), dtype=torch.float32)
+        return torch.zeros((), dtype=torch.float32, device=parameters[0].device)
 
     @staticmethod
     def backward(ctx, _):  # type: ignore[override]
@@ -173,7 +176,7 @@ class _FusedRead(torch.autograd.Function):
     def backward(ctx, grad: Tensor):  # type: ignore[override]
         (coords,) = ctx.saved_tensors
         ctx.reads.add_gradient(coords, ctx.stride, ctx.features, grad)
-        return torch.zeros((), dtype=torch.float32), None, None, None, None
+        return torch.zeros((), dtype=torch.float32, device=coords.device), None, None, None, None
 
 
 class StepReads:

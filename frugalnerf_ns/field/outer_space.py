@@ -129,10 +129,10 @@ class OuterSpace(nn.Module):
         self, origins: Tensor, directions: Tensor, edges: Tensor, t: Tensor, kernels=None
     ) -> Tuple[Optional[Tensor], Tensor, Tensor, Tensor]:
         """Weights, accumulation, colour sum and disparity sum of samples ``t`` in bins ``edges`` along each ray;
-        each sample's share of the ray is its bin's length in the contracted space. ``kernels`` (outside training,
-        rays on the CPU): one fused kernel (``field.fused_kernels.outer_composite``), no per-sample weights."""
+        each sample's share of the ray is its bin's length in the contracted space. ``kernels`` (outside training;
+        the model hands them over on the CPU only): one fused kernel (``field.fused_kernels.outer_composite``), no per-sample weights."""
         rays = origins.shape[0]
-        if kernels is not None and not torch.is_grad_enabled() and origins.device.type == "cpu":
+        if kernels is not None and not torch.is_grad_enabled():
             from frugalnerf_ns.field.fused_kernels import outer_composite
 
             dims = self.density_grid.resolution_tuple[::-1]

@@ -208,7 +208,7 @@ class FrugalNeRFField(nn.Module):
     def _fused_read(self, grid: TensorVMGrid, coords: Tensor, scale: int, features: bool) -> Optional[Tensor]:
         """``grid``'s density or features at ``coords`` ([-1, 1]) read by the fused kernels inside
         ``fused_training_reads``; None elsewhere (and where they do not compile): the caller reads with torch."""
-        if self._step_reads is None or coords.requires_grad or coords.device.type != "cpu" or not coords.shape[0]:
+        if self._step_reads is None or coords.requires_grad or not coords.shape[0]:
             return None
         stride = self.stride(scale)
         return self._step_reads.read(grid, grid.view_coords(coords, stride, self.stretched), stride, features)
@@ -298,14 +298,14 @@ class FrugalNeRFField(nn.Module):
     ) -> Float[Tensor, "n 3"]:
         """``color`` outside training: the features read from ``baked_features`` (8 row gathers per point
         instead of three planes, three lines and the basis; equal to float rounding). A grid too large to bake
-        reads its planes, with ``kernels`` (``fused_kernels.warp_kernels``, on the CPU) in one fused kernel on
+        reads its planes, with ``kernels`` (``fused_kernels.warp_kernels``) in one fused kernel on
         channels-last copies of the scale's planes and lines. With ``kernels`` on a CPU that multiplies bfloat16 in
         hardware the basis and the colour MLP run in bfloat16 (``ColorMLP.forward_bfloat16``: a colour within
         ~2e-3; ``--pipeline.model.kernels torch`` keeps float32)."""
         baked = self.baked_features(scale)
-        fused = kernels is not None and positions.device.type == "cpu"
+        fused = kernels is not None
         mlp = self.color_mlp
-        low = fused and mlp.implementation == "torch" and native_bfloat16()
+        low = fused and positions.is_cpu and mlp.implementation == "torch" and native_bfloat16()
         if low:
             mlp = mlp.forward_bfloat16  # type: ignore[assignment]
         if baked is None and fused:

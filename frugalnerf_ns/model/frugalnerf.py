@@ -257,7 +257,7 @@ class FrugalNeRFModel(Model):
         far_depth = None  # where each ray meets the far background's sphere (None: no sphere)
         front = behind = None  # the space outside the box in front of it and behind it (None: not modelled)
         if self.outer_space is not None and self.outer_space.is_active:
-            kernels = None if self.training or torch.is_grad_enabled() else warp_kernels(self.config.kernels, CONSOLE.print)
+            kernels = None if self.training or torch.is_grad_enabled() else self._render_kernels(world_origins)
             front, behind = self.outer_space.render(world_origins, world_directions, self.training, self.config.near_plane,
                                                     kernels)
             # Behind the box: the outside, then what it lets through falls on the map at infinity.
@@ -291,7 +291,7 @@ class FrugalNeRFModel(Model):
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
                             cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
                     if inference:
-                        render = render_scale_inference(*args, kernels=warp_kernels(cfg.kernels, CONSOLE.print))
+                        render = render_scale_inference(*args, kernels=self._render_kernels(origins))
                     else:
                         shade = detached = None
                         if groups is not None:
@@ -325,6 +325,10 @@ class FrugalNeRFModel(Model):
             )
             outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
         return outputs
+
+    def _render_kernels(self, origins: Tensor):
+        """The fused kernels for a render: on the CPU where they compile; on a GPU none (its renders take torch's)."""
+        return warp_kernels(self.config.kernels, CONSOLE.print) if origins.is_cpu else None
 
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
         """nerfstudio's chunked render; where the fused kernels render on the CPU, in chunks of at least

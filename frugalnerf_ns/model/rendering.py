@@ -228,7 +228,8 @@ def render_scale_inference(
 
     ``kernels`` (``fused_kernels.warp_kernels``; None: torch): the density pass as one fused
     kernel (``fused_kernels.density_march``, the same samples, weights and samples to shade) and the colour of
-    every sample to shade in one batch, where the density is baked and the rays are on the CPU."""
+    every sample to shade in one batch, where the density is baked (on the rays' device: the model hands them over
+    on the CPU only)."""
     step = field_.sample_step(scale, step_ratio)
     num_samples = samples_per_ray(field_, scale, step, max_samples_per_ray)
     rays, device = origins.shape[0], origins.device
@@ -243,7 +244,7 @@ def render_scale_inference(
     ids = torch.nonzero(segments.hit, as_tuple=True)[0]
     o, d = origins[ids].to(compute), directions[ids].to(compute)
     t_near, t_far = segments.t_near[ids].to(compute), segments.t_far[ids].to(compute)
-    if kernels is not None and baked is not None and device.type == "cpu":
+    if kernels is not None and baked is not None:
         fused = fused_kernels.density_march_blocks(
             kernels, baked, field_.aabb, field_.mask_lookup(), o, d, t_near, t_far,
             baked.group_bounds(d, step, group), step, num_samples, group, per_block, delta, weight_threshold,
