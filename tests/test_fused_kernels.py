@@ -420,3 +420,22 @@ def test_a_forked_child_gets_a_pool_of_its_own():
         os._exit(code)
     _, status = os.waitpid(child, 0)
     assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+
+
+@needs_warp
+def test_the_render_bench_runs_an_earlier_trees_kernels_where_their_arguments_match(tmp_path):
+    from pathlib import Path
+
+    from frugalnerf_ns.bench.render import _kernels_of_tree
+
+    source = Path(fused_kernels.__file__).with_name("fused_kernel_source.py")
+    own = _kernels_of_tree(source, wp)
+    assert set(own) == {"density_march", "outer_composite"}
+    assert all(own[name] is not wp.kernels[name] for name in own)  # compiled from that file, not this tree's
+    # A tree whose march takes another argument: this tree's launch could not feed it, so it keeps this tree's march.
+    changed = tmp_path / "fused_kernel_source.py"
+    text = source.read_text()
+    marker = "stop_optical: wp.float32, max_optical: wp.float32,"
+    assert marker in text
+    changed.write_text(text.replace(marker, marker + " unused: wp.float32,", 1))
+    assert set(_kernels_of_tree(changed, wp)) == {"outer_composite"}

@@ -209,6 +209,35 @@ def _load_private(path: Path, name: str):
     return module
 
 
+def _with_kernels_of_tree(marcher, tree: Path):
+    """``marcher`` handed that tree's own ``define_kernels`` kernels (the density march, the space beyond a box) in
+    place of this tree's, each where its arguments are the same (this tree launches them); else this tree's."""
+    source = tree / "frugalnerf_ns" / "field" / "fused_kernel_source.py"
+    cache: dict = {}
+
+    def with_own(*args, kernels=None, **kwargs):
+        if kernels is not None and source.is_file():
+            if "own" not in cache:
+                cache["own"] = _kernels_of_tree(source, kernels)
+            kernels = type(kernels)(kernels.wp, {**kernels.kernels, **cache["own"]})
+        return marcher(*args, kernels=kernels, **kwargs)
+
+    return with_own
+
+
+def _kernels_of_tree(source: Path, kernels) -> dict:
+    """The kernels ``define_kernels`` of ``source`` builds, compiled for the CPU, that take the arguments this tree's
+    kernels of the same name take."""
+    built = _load_private(source, "frugalnerf_before_kernel_source").define_kernels(kernels.wp)
+    kernels.wp.load_module(built["module"], device="cpu")
+
+    def arguments(kernel) -> list:
+        return [argument.label for argument in kernel.adj.args]
+
+    return {name: kernel for name, kernel in built.items() if name != "module" and name in kernels.kernels
+            and arguments(kernel) == arguments(kernels.kernels[name])}
+
+
 def marcher_from_tree(tree: Path):
     """``render_scale_inference`` of another source tree's ``frugalnerf_ns/model/rendering.py``, loaded under a
     private module name beside this tree's package (whose other modules it imports). Methods of
@@ -232,7 +261,7 @@ def marcher_from_tree(tree: Path):
                 setattr(radiance_field.BakedDensity, name, member)
     marcher = _load_private(path, "frugalnerf_before_rendering").render_scale_inference
     if "kernels" in inspect.signature(marcher).parameters:
-        return marcher
+        return _with_kernels_of_tree(marcher, tree)
 
     def without_kernels(*args, kernels=None, **kwargs):  # a tree from before the fused kernels: its torch path
         return marcher(*args, **kwargs)
