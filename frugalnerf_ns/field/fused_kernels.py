@@ -7,10 +7,14 @@ the slots of the ray's occupied groups in order, the box and alpha-mask test, th
 density grid (``BakedDensity.read``: grid_sample's corner-aligned, border-clamped rule), the activation, the
 optical depth, the compositing weight from the summed optical depths, the faint-sample budget and the
 termination, with the torch marcher's rules (a ray ends at the slot where its transmittance falls below the
-termination; the faint budget's running sum restarts per block of ``per_block`` groups, as there). It writes each ray's accumulated weight and weighted t and
-the samples to shade (t, weight) in the ray's share of one list; the colour MLP stays in torch. The torch marcher spends most of a
-frame in a few dozen element-wise passes over every marched slot and in the bookkeeping of its packed rays;
-here a slot costs one pass of registers and a ray stops where it terminates.
+termination; the faint budget's running sum restarts per block of ``per_block`` groups, as there). It writes each
+ray's accumulated weight and weighted t and the samples to shade (t, weight) in the ray's share of one list; the
+colour MLP stays in torch. The torch marcher spends most of a frame in a few dozen element-wise passes over every
+marched slot and in the bookkeeping of its packed rays; here a slot costs one pass of registers and a ray stops
+where it terminates.
+
+Every launch runs on its tensors' device (``launch``): the CPU, or a CUDA device on torch's stream. The model hands
+the kernels over on the CPU only; ``bench/kernel_check.py`` runs them on a GPU beside the torch path.
 
 Warp's CPU kernels run on one thread; a launch releases the GIL, so ``on_every_core`` runs launches on a pool of
 torch's thread count. That pays only over many rays at once: two threads marching halves of each 4096-ray chunk were
@@ -257,9 +261,10 @@ def density_march(
 
 def density_march_blocks(fused: WarpKernels, baked, aabb: Tensor, inside_mask, o: Tensor, d: Tensor, t_near: Tensor,
                          t_far: Tensor, *settings) -> MarchResult:
-    """``density_march`` over blocks of ``MARCH_BLOCK_RAYS`` rays on every core (``on_every_core``; on a GPU blocks of
-    ``CUDA_MARCH_BLOCK_RAYS`` in turn), joined in ray order: the same result as one launch over all rays (each ray is marched on its own; ``settings`` — the group
-    bounds and the rest of ``density_march``'s arguments — are the same for every block)."""
+    """``density_march`` over blocks of ``MARCH_BLOCK_RAYS`` rays on every core (``on_every_core``; on a GPU blocks
+    of ``CUDA_MARCH_BLOCK_RAYS`` in turn), joined in ray order: the same result as one launch over all rays (each
+    ray is marched on its own; ``settings`` — the group bounds and the rest of ``density_march``'s arguments — are
+    the same for every block)."""
     block_rays = max(1, MARCH_BLOCK_RAYS if o.device.type == "cpu" else CUDA_MARCH_BLOCK_RAYS)
     starts = range(0, o.shape[0], block_rays)
     if len(starts) <= 1:
@@ -306,8 +311,8 @@ def _ordered(kernel, inputs: dict, shared: dict) -> list:
 
 def outer_composite(fused: WarpKernels, table: Tensor, dims, centre: Tensor, half: Tensor, origins: Tensor, directions: Tensor,
                     edges: Tensor, t: Tensor, distance_scale: float, max_optical: float) -> Tensor:
-    """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays on the CPU, in one part
-    per core from ``SPLIT_MIN_ROWS`` rays (``_parts``): [rays, 5] accumulation, colour sum (3), disparity sum."""
+    """Run ``outer_composite`` (``OuterSpace._composite`` without gradients) over the rays, on the CPU in one part
+    per core from ``SPLIT_MIN_ROWS`` rays (``in_parts``): [rays, 5] accumulation, colour sum (3), disparity sum."""
     wp, kernel = fused.wp, fused.kernels["outer_composite"]
     rays, device = origins.shape[0], origins.device
     sums = torch.zeros(rays, 5, dtype=torch.float32, device=device)
@@ -345,9 +350,9 @@ def _rows(x: Tensor, rows: int, columns: int) -> Tensor:
 
 def vm_features(fused: WarpKernels, tables: list, coords: Tensor) -> Optional[Tensor]:
     """``plane_line_products`` concatenated, at grid coordinates ``coords`` (already mapped for the stride), from
-    ``channels_last`` tables, on the CPU (``grid_read_kernels``' ``feature_read``, at stride 1 on the copies of the
-    scale's views); from ``SPLIT_MIN_ROWS`` rows in one part per core (``_parts``; each row is read on its own, so
-    the parts give the rows one launch gives). None where the kernels for these component counts do not compile
+    ``channels_last`` tables (``grid_read_kernels``' ``feature_read``, at stride 1 on the copies of the scale's
+    views); on the CPU from ``SPLIT_MIN_ROWS`` rows in one part per core (``in_parts``; each row is read on its own,
+    so the parts give the rows one launch gives). None where the kernels for these component counts do not compile
     (said once; the caller reads the planes with torch)."""
     wp = fused.wp
     components = tuple(t[0].shape[1] for t in tables)

@@ -1,4 +1,4 @@
-"""A training step's reads of a grid's planes and lines in fused kernels (NVIDIA Warp) on the CPU: the density
+"""A training step's reads of a grid's planes and lines in fused kernels (NVIDIA Warp): the density
 (``TensorVMGrid.plane_line_products`` summed over planes and channels) and the appearance features (the products
 concatenated), each with its backward in a kernel of its own, without the autograd graph's per-sample tensors (each
 plane's and line's [C, n] reads, their products, the corner weights, and four scattered adds per plane backward).
@@ -8,11 +8,15 @@ grid (``GridReads``: its three scales, and for the appearance the detached rays 
 - channels-last copies of the full planes and lines (a corner is one vector load of a plane's channels), read at a
   strided view's entries times the stride, so a lower scale's gradient lands on the full tensors' entries as
   ``tensorial.sample_plane``'s does;
-- one set of gradient tables, one per core: each read's backward adds its samples' gradient into them (Warp's adds
-  on the CPU are plain adds: two launches adding into one table would race), and one autograd node every read
+- one set of gradient tables, one per core (on a GPU one: its adds are atomic): each read's backward adds its
+  samples' gradient into them (Warp's adds on the CPU are plain adds: two launches adding into one table would
+  race), and one autograd node every read
   hangs from (``_GridGradient``) hands their sum to the planes and lines once, after the last read's backward. Read
   by read, each scale's gradient would be a zero-filled tensor of the full planes' size, and autograd would add the
   three.
+
+The model runs them on the CPU; they launch on the tensors' device (``fused_kernels.launch``), and
+``bench/kernel_check.py`` runs them on a GPU beside torch's reads.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ from typing import Callable, Dict, List, Optional, Sequence
 import torch
 from torch import Tensor
 
-from frugalnerf_ns.field.fused_kernels import WarpKernels, _parts, channels_last, grid_read_kernels, in_parts, launch, run_jobs
+from frugalnerf_ns.field.fused_kernels import (WarpKernels, _parts, channels_last, grid_read_kernels, in_parts, launch,
+                                              run_jobs)
 from frugalnerf_ns.field.tensorial import strided_length
 
 SPLIT_MIN_SAMPLES = 1 << 16
@@ -118,7 +123,7 @@ class GridReads:
                 wp.from_torch(coords[a:b], dtype=wp.vec3), *shared, wp.from_torch(grad[a:b], dtype=dtype), *own],
                 coords.device)
 
-        run_jobs(coords.device, [(lambda p=p, a=a, b=b: launch_part(p, a, b)) for p, (a, b) in enumerate(parts) if b > a])
+        run_jobs(coords.device, [(lambda p=p, a=a, b=b: launch_part(p, a, b)) for p, (a, b) in enumerate(parts)])
 
     def take_gradients(self) -> List[Optional[Tensor]]:
         """The planes' and lines' gradients in their own shapes (the tables summed), then forget them; None each
