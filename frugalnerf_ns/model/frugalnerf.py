@@ -257,7 +257,7 @@ class FrugalNeRFModel(Model):
         far_depth = None  # where each ray meets the far background's sphere (None: no sphere)
         front = behind = None  # the space outside the box in front of it and behind it (None: not modelled)
         if self.outer_space is not None and self.outer_space.is_active:
-            kernels = None if self.training or torch.is_grad_enabled() else self._render_kernels(world_origins)
+            kernels = None if self.training or torch.is_grad_enabled() else self._cpu_kernels(world_origins)
             front, behind = self.outer_space.render(world_origins, world_directions, self.training, self.config.near_plane,
                                                     kernels)
             # Behind the box: the outside, then what it lets through falls on the map at infinity.
@@ -282,8 +282,7 @@ class FrugalNeRFModel(Model):
         # A training step on the CPU reads a large grid's planes with the fused kernels where they compile, else
         # density from nodes shared by its scales (outside training the marcher bakes them).
         training = self.training and not inference
-        fused = training and origins.is_cpu and self.field.fused_reads_pay()
-        read_kernels = warp_kernels(cfg.kernels, CONSOLE.print) if fused else None
+        read_kernels = self._cpu_kernels(origins) if training and self.field.fused_reads_pay() else None
         shared_nodes = training and cfg.training_density_read == "nodes" and read_kernels is None
         with self.field.shared_density_nodes(shared_nodes), self.field.fused_training_reads(read_kernels):
             for scale in range(self._scales_to_render()):
@@ -291,7 +290,7 @@ class FrugalNeRFModel(Model):
                     args = (self.field, origins, directions, scale, background, segments, cfg.step_ratio,
                             cfg.distance_scale, cfg.max_samples_per_ray, cfg.weight_threshold)
                     if inference:
-                        render = render_scale_inference(*args, kernels=self._render_kernels(origins))
+                        render = render_scale_inference(*args, kernels=self._cpu_kernels(origins))
                     else:
                         shade = detached = None
                         if groups is not None:
@@ -326,8 +325,8 @@ class FrugalNeRFModel(Model):
             outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
         return outputs
 
-    def _render_kernels(self, origins: Tensor):
-        """The fused kernels for a render: on the CPU where they compile; on a GPU none (its renders take torch's)."""
+    def _cpu_kernels(self, origins: Tensor):
+        """The fused kernels where the rays are on the CPU and they compile; on a GPU none (it takes the torch path)."""
         return warp_kernels(self.config.kernels, CONSOLE.print) if origins.is_cpu else None
 
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, Tensor]:
