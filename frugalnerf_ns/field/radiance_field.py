@@ -38,7 +38,7 @@ grids read their planes. The node tensor costs a fixed pass over every node per 
 zero-fill and six matrix products back), the plane reads a cost per sample: on 2-view LLFF runs the nodes were
 1.26x faster on a 177x193x113 grid (3.9 M nodes) and the planes 1.02-1.24x faster (four pairs) on 353x385x241
 (32.7 M, the paper's grid ratio at 1/8 resolution). 2^24 (256^3) lies between the two (not measured there).
-frugalnerf-cpu's 256^3 grid is 289x321x193 with the spanning sizes (17.9 M nodes): it reads its planes."""
+frugalnerf-cpu's 320^3 grid is 353x385x241 on fern's box with the spanning sizes (32.7 M nodes): it reads its planes."""
 
 FUSED_READ_MIN_ENTRIES = 2**23
 """Smallest grid (nodes) whose training steps read the planes (density and appearance) with the fused kernels
