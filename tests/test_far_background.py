@@ -217,11 +217,13 @@ def test_the_points_beyond_the_box_place_the_sphere_and_are_kept_only_when_wante
     images = [np.round(image.numpy() * 255.0).astype(np.uint8) for image in rgb]
     cache = tmp_path / "sparse.npz"
     save_sparse_depth(cache, sparse, cache_key(images, c2w.double(), intrinsics.double(), options))
-    kept, shell = training_view_points(outputs, cameras, rgb, intrinsics, options, 2, cache, "cpu", True)
+    kept, shell, beyond = training_view_points(outputs, cameras, rgb, intrinsics, options, 2, cache, "cpu", True)
     assert kept.num_points == count and shell is not None
     assert shell[0] == [0.0, 0.0, 0.0] and abs(shell[1] - float(points[2:].norm(dim=-1).median())) < 1e-6
-    inside, none = training_view_points(outputs, cameras, rgb, intrinsics, options, 2, cache, "cpu", False)
-    assert none is None and inside.num_points == 2
+    # The count the warp regime reads: 5 of the 7 points lie beyond the box.
+    assert beyond == (5, 7)
+    inside, none, no_count = training_view_points(outputs, cameras, rgb, intrinsics, options, 2, cache, "cpu", False)
+    assert none is None and inside.num_points == 2 and no_count is None
 
 
 def test_a_model_without_a_far_background_turns_the_datamanagers_sphere_off(procedural_scene, tmp_path):

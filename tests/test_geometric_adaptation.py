@@ -1,5 +1,6 @@
 """L_geo on a real FrugalDataManager batch: the model's losses, statistics and the training plot."""
 
+import dataclasses
 import json
 from contextlib import contextmanager
 
@@ -499,6 +500,51 @@ def test_a_room_beyond_the_box_drops_the_warp_losses_and_weighs_sparse_depth_rel
     # The paper's defaults keep both in such a scene.
     _, terms = losses(_variant(model, {"far_background": True}, photometric_weight=0.1))
     assert {"geo_loss", "photometric"} <= set(terms) and float(terms["geo_loss"]) > 0
+
+
+def test_the_warp_regime_follows_where_the_training_views_points_lie():
+    """``room_warp_losses`` "auto": a plain fit where most triangulated points lie beyond the box, adaptation where
+    they stand in it or are too few to say; "on"/"off" (and a saved bool) force it; no room, always the warps."""
+    from frugalnerf_ns.model.objective import PLAIN_FIT_MIN_POINTS, geo_weights, warp_regime
+
+    auto = FrugalNeRFModelConfig(geo_weight=0.1, geo_novel_weight=0.01)
+    assert auto.room_warp_losses == "auto"
+    # The measured splits: the juice box's wide (82 of 111 beyond) and 40-degree (54 of 75) splits, the bird (0 of 22).
+    assert not warp_regime(auto, True, (82, 111)).warps and not warp_regime(auto, True, (54, 75)).warps
+    assert warp_regime(auto, True, (0, 22)).warps
+    assert "82 of the 111" in warp_regime(auto, True, (82, 111)).reason
+    # The boundary: half the points beyond is a plain fit, one fewer is not.
+    assert not warp_regime(auto, True, (10, 20)).warps and warp_regime(auto, True, (9, 20)).warps
+    # Too few points, or none counted (sparse depth off): the warps act.
+    few = PLAIN_FIT_MIN_POINTS - 1
+    assert warp_regime(auto, True, (few, few)).warps and warp_regime(auto, True, None).warps
+    # No room (NDC, DTU, Blender): the warps act whatever the option and the points say.
+    for mode in ("auto", "off", False):
+        assert warp_regime(dataclasses.replace(auto, room_warp_losses=mode), False, (100, 100)) == (True, "")
+    for mode, warps in (("on", True), (True, True), ("off", False), (False, False)):
+        assert warp_regime(dataclasses.replace(auto, room_warp_losses=mode), True, (100, 100)).warps is warps
+        assert warp_regime(dataclasses.replace(auto, room_warp_losses=mode), True, (0, 100)).warps is warps
+    assert geo_weights(auto, True) == (0.1, 0.01) and geo_weights(auto, False) == (0.0, 0.0)
+
+
+def test_a_room_whose_points_lie_beyond_the_box_trains_without_the_warp_losses(model_and_batch):
+    """Through the model: the datamanager's count in the scene metadata decides."""
+    model, bundle, batch = model_and_batch
+
+    def terms(variant):
+        torch.manual_seed(1)
+        outputs = variant(bundle)
+        return variant.get_loss_dict(outputs, batch, variant.get_metrics_dict(outputs, batch))
+
+    settings = dict(photometric_weight=0.1)
+    plain = _variant(model, {"far_background": True, "frugalnerf_scene": {"points_beyond_box": [82, 111]}}, **settings)
+    assert not plain.warp_regime.warps
+    found = terms(plain)
+    assert "geo_loss" not in found and "photometric" not in found and "sparse_depth" in found
+    kept = _variant(model, {"far_background": True, "frugalnerf_scene": {"points_beyond_box": [0, 22]}}, **settings)
+    assert kept.warp_regime.warps
+    found = terms(kept)
+    assert {"geo_loss", "photometric"} <= set(found) and float(found["geo_loss"]) > 0
 
 
 def test_in_a_room_l_geo_can_compare_the_whole_rays_depth_contracted_beyond_the_box(model_and_batch):

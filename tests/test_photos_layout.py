@@ -102,11 +102,12 @@ def test_photos_from_wide_apart_are_modelled_as_posed_llff_scenes_are(tmp_path):
     beyond = ~((sparse.points >= box[0].double()) & (sparse.points <= box[1].double())).all(dim=-1)
     assert int(beyond.sum()) >= 20 and int((~beyond).sum()) >= 20
     # The estimate's points need no images, intrinsics, options or cache (no second triangulation).
-    kept, shell = training_view_points(small, small.cameras, None, None, None, 5, tmp_path / "unused.npz", "cpu", True)
+    kept, shell, counts = training_view_points(small, small.cameras, None, None, None, 5, tmp_path / "unused.npz", "cpu", True)
     assert kept.num_points == sparse.num_points and shell is not None
+    assert counts == (int(beyond.sum()), sparse.num_points)
     centre = box.mean(dim=0).double()
     assert shell[1] == pytest.approx(float((sparse.points[beyond] - centre).norm(dim=-1).median()), rel=1e-5)
-    inside, none = training_view_points(small, small.cameras, None, None, None, 5, tmp_path / "unused.npz", "cpu", False)
+    inside, none, _ = training_view_points(small, small.cameras, None, None, None, 5, tmp_path / "unused.npz", "cpu", False)
     assert none is None and inside.num_points == int((~beyond).sum())
     assert not (tmp_path / "unused.npz").exists()
 

@@ -65,6 +65,17 @@ def test_the_start_up_summary_names_each_decision_and_its_override(procedural_sc
     assert "(8x16 colours by direction, on a sphere of radius 7.5, where the sparse points beyond the box lie; " \
         in scene_summary(auto, with_far)
     assert "far background" not in detected
+    # With the room beyond the box the summary names the split's warp regime, from the points' count, and the override.
+    from frugalnerf_ns.model.objective import warp_regime
+
+    assert "geometric adaptation on" in scene_summary(auto, with_far)
+    with_far.warp_regime = warp_regime(with_far.config, True, (82, 111))
+    plain = scene_summary(auto, with_far)
+    assert "geometric adaptation off, and the photometric warps (plain fit of the photos: 82 of the 111 points" in plain
+    assert "--pipeline.model.room-warp-losses on keeps them" in plain
+    with_far.warp_regime = warp_regime(with_far.config, True, (0, 22))
+    assert "geometric adaptation on (geometric adaptation: 0 of the 22 points the training views triangulate lie " \
+        "beyond the box; --pipeline.model.room-warp-losses off: a plain fit)" in scene_summary(auto, with_far)
     forward = manager_for(procedural_scene, scene_type="forward-facing", sparse_cache_dir=tmp_path)
     forward_model = model_for(forward)
     forward_model.ndc = ndc

@@ -186,7 +186,7 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
                 far_shell_wanted = getattr(self.config, "far_background_shell", False) and bool(
                     (self.train_dataparser_outputs.metadata or {}).get("far_background")
                 )
-                self.sparse, far_shell = training_view_points(
+                self.sparse, far_shell, beyond = training_view_points(
                     self.train_dataparser_outputs, cameras, self.warp_images, self.warp_intrinsics,
                     # Configs saved before this option existed load without it (nerfstudio rebuilds them from YAML).
                     getattr(self.config, "triangulation", None) or TriangulationOptions(),
@@ -194,6 +194,8 @@ class FrugalDataManager(VanillaDataManager[FrugalDataset]):
                 )
                 if far_shell is not None:
                     self.train_dataset.metadata["frugalnerf_scene"]["far_shell"] = far_shell
+                if beyond is not None:  # where the views' content lies: the model's warp regime
+                    self.train_dataset.metadata["frugalnerf_scene"]["points_beyond_box"] = beyond
         self.fitted_box = None  # the dataparser's box when a fitted one replaced it
         if getattr(self.config, "fit_scene_box", False):
             box = self.train_dataset.scene_box.aabb.float()

@@ -25,6 +25,7 @@ from torch import Tensor
 from frugalnerf_ns.progress import Progress
 from frugalnerf_ns.geometry.plane_sweep import StereoOptions, stereo_matches
 from frugalnerf_ns.geometry.reprojection import project_to_camera
+from frugalnerf_ns.geometry.scene_analysis import beyond_box
 
 SIFT_DIMENSIONS = 128
 
@@ -229,8 +230,7 @@ def no_points(dtype: torch.dtype) -> SparseDepth:
 def points_inside_box(sparse: SparseDepth, aabb: Float[Tensor, "2 3"]) -> SparseDepth:
     """Only the observations of points inside the scene box (the field cannot render depth outside it; in
     object scenes a point outside is a wrong match on the background). Point indices are renumbered."""
-    lo, hi = aabb[0].to(sparse.points), aabb[1].to(sparse.points)
-    inside = ((sparse.points >= lo) & (sparse.points <= hi)).all(dim=-1)
+    inside = ~beyond_box(sparse.points, aabb)
     new_index = torch.cumsum(inside.long(), 0) - 1
     keep = inside[sparse.point]
     return SparseDepth(

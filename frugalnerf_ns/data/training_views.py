@@ -22,6 +22,7 @@ from frugalnerf_ns.data.training_points import all_training_sparse_depth, usable
 from frugalnerf_ns.geometry.scene_analysis import (
     CameraLayout,
     SceneType,
+    beyond_box,
     classify_camera_layout,
     far_shell,
     fit_scene_box,
@@ -68,9 +69,10 @@ def training_view_points(
     outputs: DataparserOutputs, cameras: Cameras, rgb: Float[Tensor, "views height width 3"],
     intrinsics: Float[Tensor, "views 4"], options: TriangulationOptions, min_points: int, cache: Path, device,
     far_shell_wanted: bool = False,
-) -> Tuple[Optional[SparseDepth], Optional[Tuple[List[float], float]]]:
-    """Sparse points of the training views on ``device`` (None when fewer than ``min_points``) and the far
-    background's sphere ((centre, radius), or None): the points the photos' cameras were estimated with
+) -> Tuple[Optional[SparseDepth], Optional[Tuple[List[float], float]], Optional[Tuple[int, int]]]:
+    """Sparse points of the training views on ``device`` (None when fewer than ``min_points``), the far
+    background's sphere ((centre, radius), or None) and, with ``far_shell_wanted`` in a metric box, how many of all
+    the points lie beyond the box ((beyond, total), else None; the model's ``objective.warp_regime``): the points the photos' cameras were estimated with
     (metadata ``sparse_depth``), else the training views' triangulated points, from the cache when it matches.
 
     With ``far_shell_wanted`` (a box holding only the near part of the scene, with a far background) the points
@@ -90,6 +92,9 @@ def training_view_points(
         how = "triangulating the training views"
     # else photos without cameras: the points their cameras were estimated with (no second triangulation).
     shell = far_shell(every.points, box) if far_shell_wanted and box is not None else None
+    counts = None
+    if far_shell_wanted and box is not None:
+        counts = (int(beyond_box(every.points, box).sum()), int(every.num_points))
     if shell is not None:
         centre, radius = shell
         CONSOLE.print(
@@ -99,9 +104,9 @@ def training_view_points(
             "(--pipeline.datamanager.far-background-shell False: neither)."
         )
         sparse = usable_points(every, None, min_points, CONSOLE.print, f"{how} (in and beyond the box)")
-        return (None if sparse is None else _on(sparse, device)), (centre.tolist(), radius)
+        return (None if sparse is None else _on(sparse, device)), (centre.tolist(), radius), counts
     sparse = usable_points(every, box, min_points, CONSOLE.print, how)
-    return (None if sparse is None else _on(sparse, device)), None
+    return (None if sparse is None else _on(sparse, device)), None, counts
 
 
 def _on(sparse: SparseDepth, device) -> SparseDepth:

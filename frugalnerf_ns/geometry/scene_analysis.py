@@ -13,7 +13,7 @@ import math
 from typing import List, Literal, NamedTuple, Optional, Sequence, Tuple
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from torch import Tensor
 
 from frugalnerf_ns.geometry.reprojection import project_to_camera
@@ -163,6 +163,12 @@ def focus_box(
     return torch.stack([centre - half, centre + half]).float()
 
 
+def beyond_box(points: Float[Tensor, "points 3"], box: Float[Tensor, "2 3"]) -> Bool[Tensor, " points"]:
+    """Which ``points`` lie outside the axis-aligned ``box`` (min corner, max corner); its faces count as inside."""
+    box = box.to(points.dtype)
+    return ~((points >= box[0]) & (points <= box[1])).all(dim=-1)
+
+
 def far_shell(
     points: Float[Tensor, "points 3"], box: Float[Tensor, "2 3"], min_points: int = 5
 ) -> Optional[Tuple[Float[Tensor, "3"], float]]:
@@ -173,7 +179,7 @@ def far_shell(
     box = box.double()
     centre = box.mean(dim=0)
     points = points.double()
-    beyond = points[~((points >= box[0]) & (points <= box[1])).all(dim=-1)]
+    beyond = points[beyond_box(points, box)]
     if len(beyond) < max(1, min_points):
         return None
     half_diagonal = float((box[1] - box[0]).norm()) / 2.0

@@ -111,6 +111,10 @@ class FrugalNeRFModel(Model):
                                               num_front_samples=self.config.outer_space_front_samples)
                 centre, radius = None, 0.0
             self.far_background = FarBackground(tuple(self.config.far_background_resolution), centre, radius)
+        # Geometric adaptation or a plain fit of the photos (objective.warp_regime): from where the points the
+        # training views triangulate lie, which the datamanager counts before the first step.
+        beyond = scene.get("points_beyond_box")
+        self.warp_regime = objective.warp_regime(self.config, self.has_room, None if beyond is None else tuple(beyond))
         # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
         # the module tree and out of every checkpoint.
         self.scorer = ImageScorer()
@@ -373,7 +377,8 @@ class FrugalNeRFModel(Model):
             target = objective.target_rgb(batch.image.to(self.device), objective.train_rows(step.background, batch))
             for scale, render in enumerate(step.scales):
                 metrics[f"psnr{scale_suffix(scale)}"] = capped_psnr(render.rgb[batch.train].detach(), target)
-            adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views, self.has_room)
+            adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views,
+                                                        self.warp_regime.warps)
             if adaptation is not None:
                 stats = scale_statistics(adaptation.chosen_scale, self.field.num_scales)
                 self.scale_history.record(0 if batch.step is None else batch.step, stats)
@@ -395,11 +400,12 @@ class FrugalNeRFModel(Model):
             step: StepRender = outputs["step"]
             adaptation = (metrics_dict or {}).get(ADAPTATION_METRIC)
             if adaptation is None:  # called without this step's metrics
-                adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views, self.has_room)
+                adaptation = objective.geometric_adaptation(self.config, step, batch, self.reference_views,
+                                                            self.warp_regime.warps)
             terms = objective.training_losses(
                 self.config, self.field, step, batch, self.reference_views, decay, self.occlusion_active,
                 geo_factor=factors.geo, sparse_factor=factors.sparse, adaptation=adaptation,
-                room=self.has_room,
+                room=self.has_room, warps=self.warp_regime.warps,
             )
             if self.outer_space is not None and self.outer_space.is_active:
                 terms.update(objective.outer_space_regularizers(self.config, self.outer_space, decay))

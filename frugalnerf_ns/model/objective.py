@@ -9,7 +9,7 @@ the start) while the distortion weight grows with it.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, NamedTuple, Optional, Tuple
 
 import torch
 from jaxtyping import Bool, Float, Int
@@ -140,11 +140,13 @@ def training_losses(
     sparse_factor: Optional[float] = None,
     adaptation: Optional[AdaptationResult] = None,
     room: bool = False,
+    warps: bool = True,
 ) -> Dict[str, Tensor]:
     """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
     lambda_geo (its schedule, geo_weight_decay), ``sparse_factor`` lambda_sd (None: ``decay``, as the other
     regularisers); ``adaptation``: this step's ``geometric_adaptation`` where the metrics computed it (else it
-    is computed here); ``room``: the scene has the room beyond its box (``geo_weights``, ``uses_relative_sparse_depth``)."""
+    is computed here); ``room``: the scene has the room beyond its box (``uses_relative_sparse_depth``); ``warps``: the
+    split's ``warp_regime`` lets the warp losses act."""
     device = render.background.device
     target = target_rgb(batch.image.to(device), train_rows(render.background, batch))
     predictions = [scale.rgb[batch.train] for scale in render.scales]
@@ -153,15 +155,14 @@ def training_losses(
         terms.update(grid_regularizers(cfg, field_, decay))
         terms.update(sample_regularizers(cfg, field_, render, decay, occlusion_active))
     if adaptation is None:
-        adaptation = geometric_adaptation(cfg, render, batch, views, room)
+        adaptation = geometric_adaptation(cfg, render, batch, views, warps)
     if adaptation is not None:  # Eq. 10: training patches and novel rays
-        train_weight, novel_weight = geo_weights(cfg, room)
+        train_weight, novel_weight = geo_weights(cfg, warps)
         if train_weight == novel_weight:  # one weight (the paper): the same float operations as before the split
             geo = train_weight * (adaptation.loss_train + adaptation.loss_novel)
         else:
             geo = train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel
         terms["geo_loss"] = geo_factor * geo
-    warps = warp_losses_act(cfg, room)
     if cfg.photometric_weight > 0 and views is not None and warps:
         with record_function("photometric_consistency"):
             terms["photometric"] = cfg.photometric_weight * photometric_consistency(cfg, render, batch, views)
@@ -310,28 +311,69 @@ def novel_photometric_consistency(
     )
 
 
-def warp_losses_act(cfg: "FrugalNeRFSettings", room: bool) -> bool:
-    """Whether the losses that warp pixels between training views (L_geo, the photometric terms) act: everywhere but
-    in a scene with the room beyond its box (``room``: the model has a far background) with room_warp_losses off."""
-    return cfg.room_warp_losses or not room
+PLAIN_FIT_SHARE_BEYOND_BOX = 0.5
+"""``room_warp_losses`` "auto": the share of the training views' triangulated points lying beyond the subject's box
+from which a split is fitted without the warp losses. Measured at start-up (docs/notes/captures.md, "Two regimes"):
+the juice box's wide and 40-degree splits 0.74 and 0.72 (their room is what the photos share), the bird's 3- and
+4-view splits 0.0 (its wall stands in the box)."""
+
+PLAIN_FIT_MIN_POINTS = 10
+"""Fewer triangulated points than this say nothing about where a split's content lies: "auto" keeps the warps."""
 
 
-def geo_weights(cfg: "FrugalNeRFSettings", room: bool = False) -> Tuple[float, float]:
+class WarpRegime(NamedTuple):
+    """Whether the losses that warp pixels between training views act (L_geo, the photometric terms), and why, in
+    words for the start-up summary."""
+
+    warps: bool
+    reason: str
+
+
+def warp_regime(
+    cfg: "FrugalNeRFSettings", room: bool, points_beyond_box: Optional[Tuple[int, int]] = None
+) -> WarpRegime:
+    """The regime of a split: cross-scale geometric adaptation (the paper's) or a plain fit of the photos.
+
+    Only a scene with the room beyond its box (``room``: the model has a far background) can be fitted plainly.
+    There L_geo compares each scale's depth *in the box* (Eq. 5, 9): where what the photos share lies beyond it (the
+    room of a capture whose views are 25-45 degrees apart), agreeing scales ask for a surface in the box, and the
+    room stays there as streaks (docs/notes/captures.md). ``room_warp_losses`` "on" / "off" force either; "auto"
+    fits plainly where at least ``PLAIN_FIT_SHARE_BEYOND_BOX`` of the training views' triangulated points
+    (``points_beyond_box``: (beyond, total), the datamanager's count) lie beyond the box. A bool (configs saved
+    before "auto") reads as "on" / "off"."""
+    mode = {True: "on", False: "off"}.get(cfg.room_warp_losses, cfg.room_warp_losses)  # type: ignore[arg-type]
+    if not room:
+        return WarpRegime(True, "")
+    if mode == "on":
+        return WarpRegime(True, "set by --pipeline.model.room-warp-losses")
+    if mode == "off":
+        return WarpRegime(False, "set by --pipeline.model.room-warp-losses")
+    if points_beyond_box is None or points_beyond_box[1] < PLAIN_FIT_MIN_POINTS:
+        found = "no" if points_beyond_box is None else f"only {points_beyond_box[1]}"
+        return WarpRegime(True, f"{found} triangulated points to tell where the views' content lies")
+    beyond, total = points_beyond_box
+    share = f"{beyond} of the {total} points the training views triangulate lie beyond the box"
+    if beyond >= PLAIN_FIT_SHARE_BEYOND_BOX * total:
+        return WarpRegime(False, f"plain fit of the photos: {share}, where depths in the box cannot match them")
+    return WarpRegime(True, f"geometric adaptation: {share}")
+
+
+def geo_weights(cfg: "FrugalNeRFSettings", warps: bool = True) -> Tuple[float, float]:
     """lambda_geo of Eq. 10's two summands (training patches, novel rays): geo_weight for both unless
-    geo_novel_weight sets the novel rays' own; 0 for both where ``warp_losses_act`` says no."""
-    if not warp_losses_act(cfg, room):
+    geo_novel_weight sets the novel rays' own; 0 for both where the split's ``warp_regime`` has no warps."""
+    if not warps:
         return 0.0, 0.0
     novel = cfg.geo_weight if cfg.geo_novel_weight is None else cfg.geo_novel_weight
     return cfg.geo_weight, novel
 
 
 def geometric_adaptation(
-    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews], room: bool = False
+    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: Optional[ReferenceViews], warps: bool = True
 ) -> Optional[AdaptationResult]:
     """Eq. 2-9 on the step's training and novel rays (Eq. 6's source colour: ``novel_view_source``); the model
     computes it once a step, with the metrics, and hands it to the losses. None when lambda_geo is 0 (both
-    summands; ``room`` as in ``geo_weights``) or there are no training views to warp into."""
-    if max(geo_weights(cfg, room)) <= 0 or views is None:
+    summands; ``warps`` as in ``geo_weights``) or there are no training views to warp into."""
+    if max(geo_weights(cfg, warps)) <= 0 or views is None:
         return None
     warped = batch.warped
     white = torch.ones(3, device=render.background.device)

@@ -126,12 +126,16 @@ def scene_summary(datamanager, model) -> str:
         occlusion = "off (weight 0)"
     else:
         occlusion = "on" if model.occlusion_active else "off (not an object scene)"
-    if max(geo_weights(cfg, room)) <= 0:
-        geo = "off (a room beyond the box: --pipeline.model.room-warp-losses)" if room and max(geo_weights(cfg)) > 0 else "off (weight 0)"
+    regime = getattr(model, "warp_regime", None)
+    warps = True if regime is None else regime.warps
+    if max(geo_weights(cfg)) <= 0:
+        geo = "off (weight 0)"
+    elif not warps:
+        geo = f"off, and the photometric warps ({regime.reason}; --pipeline.model.room-warp-losses on keeps them)"
     elif views < 2:
         geo = "novel rays only (one view)" if datamanager.novel_cameras is not None else "off (one view, no novel rays)"
     else:
-        geo = "on"
+        geo = f"on ({regime.reason}; --pipeline.model.room-warp-losses off: a plain fit)" if regime and regime.reason else "on"
     return (
         f"frugalnerf scene: {datamanager.scene_type} ({detected}: views within {layout.spread_degrees:.1f} deg of their "
         f"mean, cameras cover {layout.coverage_degrees:.0f} deg around the focus); {views} training views\n"
