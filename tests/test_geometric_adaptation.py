@@ -527,6 +527,17 @@ def test_the_warp_regime_follows_where_the_training_views_points_lie():
     assert geo_weights(auto, True) == (0.1, 0.01) and geo_weights(auto, False) == (0.0, 0.0)
 
 
+def test_space_no_photo_sees_is_carved_where_the_split_is_fitted_plainly():
+    from frugalnerf_ns.model.objective import WarpRegime, carve_unseen_space
+
+    auto = FrugalNeRFModelConfig()
+    plain, adapted = WarpRegime(False, ""), WarpRegime(True, "")
+    assert carve_unseen_space(auto, False, plain) and not carve_unseen_space(auto, False, adapted)
+    assert not carve_unseen_space(auto, True, plain)  # NDC: the box is the training frusta
+    on, off = dataclasses.replace(auto, carve_unseen="on"), dataclasses.replace(auto, carve_unseen="off")
+    assert carve_unseen_space(on, False, adapted) and not carve_unseen_space(off, False, plain)
+
+
 def test_a_room_whose_points_lie_beyond_the_box_trains_without_the_warp_losses(model_and_batch):
     """Through the model: the datamanager's count in the scene metadata decides."""
     model, bundle, batch = model_and_batch
@@ -545,6 +556,13 @@ def test_a_room_whose_points_lie_beyond_the_box_trains_without_the_warp_losses(m
     assert kept.warp_regime.warps
     found = terms(kept)
     assert {"geo_loss", "photometric"} <= set(found) and float(found["geo_loss"]) > 0
+    # The plain fit's alpha mask empties what no training camera sees; with the warps the mask is TensoRF's.
+    assert kept.seen_by_training_views() is None
+    seen = plain.seen_by_training_views()
+    views = plain.reference_views
+    centres = views.camera_to_worlds[:, :3, 3]
+    forward = centres - 0.5 * views.camera_to_worlds[:, :3, 2]  # half a unit along each camera's viewing axis
+    assert seen(forward).all() and not seen(centres + 0.5 * views.camera_to_worlds[:, :3, 2]).any()
 
 
 def test_in_a_room_l_geo_can_compare_the_whole_rays_depth_contracted_beyond_the_box(model_and_batch):

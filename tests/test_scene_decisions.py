@@ -71,7 +71,7 @@ def test_the_start_up_summary_names_each_decision_and_its_override(procedural_sc
     assert "geometric adaptation on" in scene_summary(auto, with_far)
     with_far.warp_regime = warp_regime(with_far.config, True, (82, 111))
     plain = scene_summary(auto, with_far)
-    assert "geometric adaptation off, and the photometric warps (plain fit of the photos: 82 of the 111 points" in plain
+    assert "geometric adaptation off, the photometric warps too (plain fit of the photos: 82 of the 111 points" in plain
     assert "--pipeline.model.room-warp-losses on keeps them" in plain
     with_far.warp_regime = warp_regime(with_far.config, True, (0, 22))
     assert "geometric adaptation on (geometric adaptation: 0 of the 22 points the training views triangulate lie " \

@@ -248,6 +248,31 @@ def test_alpha_mask_and_shrink_fit_the_occupied_region():
     assert field.density_grid.resolution_tuple[0] < 21
 
 
+def test_the_alpha_mask_empties_what_no_training_camera_sees():
+    """``seen``: a camera at x = -3 looking along +x with a narrow view sees the box's middle only; the alpha mask
+    keeps density there (and one node around it) and empties the rest, though every node holds the same density."""
+    from frugalnerf_ns.geometry.scene_analysis import views_seeing
+
+    field = FrugalNeRFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), (21, 21, 21), density_activation="relu",
+                            mlp_implementation="torch")
+    with torch.no_grad():
+        for p in list(field.density_grid.planes) + list(field.density_grid.lines):
+            p.zero_()
+        field.density_grid.planes[0][:, 0] = 1.0
+        field.density_grid.lines[0][:, 0] = 1.0
+    # OpenGL camera (looks along its -z): its -z axis is world +x, its image 20 px wide at focal 80 (14 degrees).
+    c2w = torch.tensor([[[0.0, 0.0, -1.0, -3.0], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]])
+    intrinsics = torch.tensor([[80.0, 80.0, 10.0, 10.0]])
+    probes = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.9, 0.0], [0.0, 0.0, 0.9], [-3.5, 0.0, 0.0]])
+    assert views_seeing(probes, c2w, intrinsics, (20, 20)).tolist() == [1, 0, 0, 0]  # behind the camera: not seen
+    full = field.update_alpha_mask(step_ratio=0.5, distance_scale=25.0).clone()
+    assert bool(field.alpha_mask.all())
+    carved = field.update_alpha_mask(0.5, 25.0, seen=lambda p: views_seeing(p, c2w, intrinsics, (20, 20)) > 0)
+    assert field.inside(probes[:3]).tolist() == [True, False, False]
+    assert 0.0 < float(field.alpha_mask.float().mean()) < 0.5
+    assert (carved[1] - carved[0] < full[1] - full[0]).any()
+
+
 def test_inside_is_the_box_test_and_the_nearest_mask_voxel_of_the_masks_own_box():
     field = FrugalNeRFField(torch.tensor([[-1.0] * 3, [1.0] * 3]), (20, 24, 16), mlp_implementation="torch")
     # The mask's box differs from the field's (as after a shrink): points in one and not the other, and points

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from typing import Dict, Iterator, List, Literal, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -363,10 +363,13 @@ class FrugalNeRFField(nn.Module):
 
     @torch.no_grad()
     def update_alpha_mask(
-        self, step_ratio: float, distance_scale: float, threshold: float = 1e-4, chunk: int = 65536
+        self, step_ratio: float, distance_scale: float, threshold: float = 1e-4, chunk: int = 65536,
+        seen: Optional[Callable[[Tensor], Tensor]] = None,
     ) -> Float[Tensor, "2 3"]:
         """Evaluate full-resolution alpha on the grid's nodes, dilate (3x3x3 max-pool), threshold.
 
+        ``seen`` (points -> bool, e.g. some training camera sees them) also empties every node that it rejects
+        and none of whose neighbours it accepts (the same 3x3x3 dilation): space no photo shows keeps no density.
         Returns the box around the occupied voxels (the caller may shrink the grid to it).
         """
         res = self.density_grid.resolution_tuple
@@ -378,6 +381,10 @@ class FrugalNeRFField(nn.Module):
         alpha = (1.0 - torch.exp(-sigma * step * distance_scale)).view(1, 1, *res)
         alpha = F.max_pool3d(alpha, kernel_size=3, padding=1, stride=1).view(*res)
         mask = alpha > threshold
+        if seen is not None:
+            shown = torch.cat([seen(points[i : i + chunk]) for i in range(0, points.shape[0], chunk)])
+            shown = F.max_pool3d(shown.float().view(1, 1, *res), kernel_size=3, padding=1, stride=1).view(*res)
+            mask &= shown > 0
         self.alpha_mask = mask
         self.alpha_mask_aabb = self.aabb.clone()
         occupied = points.view(*res, 3)[mask]

@@ -13,7 +13,7 @@ import math
 from typing import List, Literal, NamedTuple, Optional, Sequence, Tuple
 
 import torch
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from frugalnerf_ns.geometry.reprojection import project_to_camera
@@ -212,6 +212,28 @@ def grid_side_for_pixels(num_train_pixels: int, side_per_pixel_root: float = PAP
     return int(min(max_side, max(min_side, round(side))))
 
 
+def views_seeing(
+    points: Float[Tensor, "points 3"],
+    camera_to_worlds: Float[Tensor, "views 3 4"],
+    intrinsics: Float[Tensor, "views 4"],
+    image_size: Tuple[int, int],
+    near_far: Optional[Tuple[float, float]] = None,
+) -> Int[Tensor, " points"]:
+    """How many of the cameras see each point: it projects inside the image (``image_size`` = width, height) in
+    front of the camera, and between the near and far bounds when they are known."""
+    width, height = image_size
+    points = points.double()
+    seen = torch.zeros(len(points), dtype=torch.long, device=points.device)
+    for c2w, k in zip(camera_to_worlds.double().to(points.device), intrinsics.double().to(points.device)):
+        proj = project_to_camera(points, c2w, k)
+        u, v = proj.pixels.unbind(-1)
+        visible = proj.in_front & (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
+        if near_far is not None:
+            visible &= (proj.depth >= near_far[0]) & (proj.depth <= near_far[1])
+        seen += visible.long()
+    return seen
+
+
 def seen_region_box(
     box: Float[Tensor, "2 3"],
     camera_to_worlds: Float[Tensor, "views 3 4"],
@@ -233,14 +255,7 @@ def seen_region_box(
     steps = [(torch.arange(samples_per_axis, dtype=torch.float64) + 0.5) / samples_per_axis for _ in range(3)]
     grid = torch.stack(torch.meshgrid(*steps, indexing="ij"), dim=-1).reshape(-1, 3)
     points = box[0] + grid * (box[1] - box[0])
-    seen = torch.zeros(len(points), dtype=torch.long)
-    for c2w, k in zip(camera_to_worlds.double(), intrinsics.double()):
-        proj = project_to_camera(points, c2w, k)
-        u, v = proj.pixels.unbind(-1)
-        visible = proj.in_front & (u >= 0) & (u <= width) & (v >= 0) & (v <= height)
-        if near_far is not None:
-            visible &= (proj.depth >= near_far[0]) & (proj.depth <= near_far[1])
-        seen += visible.long()
+    seen = views_seeing(points, camera_to_worlds, intrinsics, image_size, near_far)
     kept = points[seen >= min(min_views, len(camera_to_worlds))]
     if len(kept) == 0:
         return None

@@ -241,6 +241,12 @@ class FrugalNeRFSettings(ModelConfig):
     along the ray (bounded: the room's 4-144 units weigh as much as the box's last half). Not a paper setting. The
     juice box's wide split, seed 42: 13.34 / 0.445 / 0.660 against 13.55 / 0.442 / 0.601 ("box"), its training views
     16.7 against 18.0 dB: docs/notes/captures.md, "L_geo and the room: three more probes"."""
+    carve_unseen: Literal["auto", "on", "off"] = "auto"
+    """In a metric box, whether the alpha mask (``alpha_mask_at``) also empties the space no training camera sees
+    (``objective.carve_unseen_space``). No photo's colour reaches it; in the plain-fit regime (``room_warp_losses``)
+    no novel ray's L_geo does either, and the grid's initial density stays there as fog: a test camera between two
+    photos can sit inside it and render one grey colour (the juice box's 40-degree split, 3 of 6 test views). "auto":
+    where the split is fitted plainly; "on": every metric box; "off": never. NDC boxes are the training frusta."""
     room_warp_losses: Literal["auto", "on", "off"] = "auto"
     """Where the scene is an object in a metric box with the room beyond it (a far background: photos circling their
     subject), whether the losses that warp pixels between training views act: L_geo (Eq. 10, both summands) and the

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass, field
-from typing import Dict, Iterator, List, Optional, Tuple, Type, Union
+from typing import Callable, Dict, Iterator, List, Optional, Tuple, Type, Union
 
 import torch
 from jaxtyping import Float
@@ -43,7 +43,7 @@ from frugalnerf_ns.geometry.raymarch import exit_distances, intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import (FUSED_CHUNK_RAYS, StepRender, render_in_chunks, render_scale,
                                            render_scale_inference, scale_suffix)
-from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
+from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels, views_seeing
 from frugalnerf_ns.model.training_schedule import ScheduleFactors, schedule_factors, schedule_length, training_callbacks
 
 
@@ -362,6 +362,19 @@ class FrugalNeRFModel(Model):
         if self.render_scale_map or self.config.eval_all_scales:
             return self.field.num_scales
         return 1
+
+    def seen_by_training_views(self) -> Optional[Callable[[Tensor], Tensor]]:
+        """points -> whether some training camera sees them, for the alpha mask to empty the rest
+        (``objective.carve_unseen_space``), or None where it keeps it (or the training views are not known)."""
+        views = self.reference_views
+        if views is None or not objective.carve_unseen_space(self.config, self.ndc is not None, self.warp_regime):
+            return None
+        height, width = views.images.shape[1:3]
+
+        def seen(points: Tensor) -> Tensor:
+            return views_seeing(points, views.camera_to_worlds, views.intrinsics, (width, height)) > 0
+
+        return seen
 
     @property
     def has_room(self) -> bool:

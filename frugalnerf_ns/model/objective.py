@@ -358,6 +358,14 @@ def warp_regime(
     return WarpRegime(True, f"geometric adaptation: {share}")
 
 
+def carve_unseen_space(cfg: "FrugalNeRFSettings", ndc: bool, regime: WarpRegime) -> bool:
+    """Whether the alpha mask empties the space no training camera sees (``carve_unseen``): never in NDC (its box
+    is the training frusta), "auto" where the split is fitted plainly (``warp_regime``)."""
+    if ndc or cfg.carve_unseen == "off":
+        return False
+    return cfg.carve_unseen == "on" or not regime.warps
+
+
 def geo_weights(cfg: "FrugalNeRFSettings", warps: bool = True) -> Tuple[float, float]:
     """lambda_geo of Eq. 10's two summands (training patches, novel rays): geo_weight for both unless
     geo_novel_weight sets the novel rays' own; 0 for both where the split's ``warp_regime`` has no warps."""

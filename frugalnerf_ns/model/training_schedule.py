@@ -6,10 +6,11 @@ grid optimiser that each resize recreates. The steps are fractions of the run's 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, NamedTuple, Optional, Protocol, Tuple
+from typing import Callable, List, NamedTuple, Optional, Protocol, Tuple
 
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
 from torch.optim.lr_scheduler import LambdaLR
 
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
@@ -29,6 +30,8 @@ class ScheduledModel(Protocol):
     scale_history: ScaleFractionHistory
 
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]: ...
+
+    def seen_by_training_views(self) -> Optional[Callable[[Tensor], Tensor]]: ...
 
 
 class ScheduleFactors(NamedTuple):
@@ -75,7 +78,8 @@ def training_callbacks(model: ScheduledModel, training_callback_attributes: Trai
 
     def update_alpha_mask(step: int) -> None:
         occupied_box = model.field.update_alpha_mask(
-            model.config.step_ratio, model.config.distance_scale, model.config.alpha_mask_threshold
+            model.config.step_ratio, model.config.distance_scale, model.config.alpha_mask_threshold,
+            seen=model.seen_by_training_views(),
         )
         if step == alpha_mask_steps[0]:
             # Keep the voxel count while the box shrinks: the freed voxels refine the occupied region.

@@ -131,7 +131,7 @@ def scene_summary(datamanager, model) -> str:
     if max(geo_weights(cfg)) <= 0:
         geo = "off (weight 0)"
     elif not warps:
-        geo = f"off, and the photometric warps ({regime.reason}; --pipeline.model.room-warp-losses on keeps them)"
+        geo = f"off, the photometric warps too ({regime.reason}; --pipeline.model.room-warp-losses on keeps them)"
     elif views < 2:
         geo = "novel rays only (one view)" if datamanager.novel_cameras is not None else "off (one view, no novel rays)"
     else:
