@@ -73,9 +73,11 @@ def test_the_start_up_summary_names_each_decision_and_its_override(procedural_sc
     plain = scene_summary(auto, with_far)
     assert "geometric adaptation off, the photometric warps too (plain fit of the photos: 82 of the 111 points" in plain
     assert "--pipeline.model.room-warp-losses on keeps them" in plain
+    assert "the alpha mask empties what no training camera sees (--pipeline.model.carve-unseen off keeps it)" in plain
     with_far.warp_regime = warp_regime(with_far.config, True, (0, 22))
     assert "geometric adaptation on (geometric adaptation: 0 of the 22 points the training views triangulate lie " \
         "beyond the box; --pipeline.model.room-warp-losses off: a plain fit)" in scene_summary(auto, with_far)
+    assert "alpha mask empties" not in scene_summary(auto, with_far)
     forward = manager_for(procedural_scene, scene_type="forward-facing", sparse_cache_dir=tmp_path)
     forward_model = model_for(forward)
     forward_model.ndc = ndc

@@ -15,7 +15,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineC
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC
-from frugalnerf_ns.model.objective import geo_weights, uses_relative_sparse_depth
+from frugalnerf_ns.model.objective import carve_unseen_space, geo_weights, uses_relative_sparse_depth
 from frugalnerf_ns.run.checkpoints import use_intact_checkpoints_in_eval_tools
 from frugalnerf_ns.errors import one_line_errors
 from frugalnerf_ns.tools.video import teach_ns_render_spiral
@@ -136,6 +136,8 @@ def scene_summary(datamanager, model) -> str:
         geo = "novel rays only (one view)" if datamanager.novel_cameras is not None else "off (one view, no novel rays)"
     else:
         geo = f"on ({regime.reason}; --pipeline.model.room-warp-losses off: a plain fit)" if regime and regime.reason else "on"
+    if model.ndc is None and regime is not None and carve_unseen_space(cfg, False, regime):
+        grid += "; the alpha mask empties what no training camera sees (--pipeline.model.carve-unseen off keeps it)"
     return (
         f"frugalnerf scene: {datamanager.scene_type} ({detected}: views within {layout.spread_degrees:.1f} deg of their "
         f"mean, cameras cover {layout.coverage_degrees:.0f} deg around the focus); {views} training views\n"
