@@ -14,6 +14,17 @@ def log_linear_voxel_counts(initial: int, final: int, num_upsamples: int) -> Lis
     return [int(round(math.exp(log_a + (log_b - log_a) * (i + 1) / num_upsamples))) for i in range(num_upsamples)]
 
 
+def spanning_stride(settings) -> int:
+    """The stride of the coarsest scale whose view must span the box (``scale_spanning_grid``, ``num_lower_scales``,
+    ``scale_spanning_scales`` and ``downsample_ratio`` of the model's ``settings``), else 1."""
+    if not settings.scale_spanning_grid:
+        return 1
+    spanning = settings.num_lower_scales
+    if settings.scale_spanning_scales is not None:
+        spanning = min(spanning, settings.scale_spanning_scales)
+    return settings.downsample_ratio**spanning
+
+
 def resolution_for_voxels(
     num_voxels: int, box_size: Sequence[float], span_stride: int = 1, span_rounding: str = "nearest"
 ) -> Tuple[int, int, int]:

@@ -31,7 +31,7 @@ from frugalnerf_ns.model import objective
 from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
 from frugalnerf_ns.field.outer_space import OuterSpace, depth_through_outer_space
-from frugalnerf_ns.field.grid_sizes import log_linear_voxel_counts, resolution_for_voxels
+from frugalnerf_ns.field.grid_sizes import log_linear_voxel_counts, resolution_for_voxels, spanning_stride
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import (ADAPTATION_METRIC, ReferenceViews, ScaleFractionHistory,
                                                       pseudo_ground_truth_scale, scale_choice_colors, scale_statistics)
@@ -43,7 +43,7 @@ from frugalnerf_ns.geometry.raymarch import exit_distances, intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import (FUSED_CHUNK_RAYS, StepRender, render_in_chunks, render_scale,
                                            render_scale_inference, scale_suffix)
-from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels, views_seeing
+from frugalnerf_ns.geometry.scene_analysis import grid_side_for_pixels
 from frugalnerf_ns.model.training_schedule import ScheduleFactors, schedule_factors, schedule_length, training_callbacks
 
 
@@ -65,7 +65,7 @@ class FrugalNeRFModel(Model):
         resolution = resolution_for_voxels(
             self.config.initial_voxels,
             (aabb[1] - aabb[0]).tolist(),
-            self._span_stride(),
+            spanning_stride(self.config),
             self.config.scale_spanning_rounding,
         )
         self.field = FrugalNeRFField(
@@ -111,8 +111,7 @@ class FrugalNeRFModel(Model):
                                               num_front_samples=self.config.outer_space_front_samples)
                 centre, radius = None, 0.0
             self.far_background = FarBackground(tuple(self.config.far_background_resolution), centre, radius)
-        # Geometric adaptation or a plain fit of the photos (objective.warp_regime): from where the points the
-        # training views triangulate lie, which the datamanager counts before the first step.
+        # Geometric adaptation or a plain fit (objective.warp_regime), from the datamanager's count of the points.
         beyond = scene.get("points_beyond_box")
         self.warp_regime = objective.warp_regime(self.config, self.has_room, None if beyond is None else tuple(beyond))
         # Test-image scores (PSNR, SSIM, LPIPS, per scale): a plain object, so its LPIPS network stays out of
@@ -181,19 +180,10 @@ class FrugalNeRFModel(Model):
             self.num_rendered_scales = previous
 
     # ---- optimisation -----------------------------------------------------------------------------------
-    def _span_stride(self) -> int:
-        """The stride of the coarsest scale whose view must span the box (``scale_spanning_scales``), else 1."""
-        if not self.config.scale_spanning_grid:
-            return 1
-        spanning = self.config.num_lower_scales
-        if self.config.scale_spanning_scales is not None:
-            spanning = min(spanning, self.config.scale_spanning_scales)
-        return self.config.downsample_ratio**spanning
-
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]:
         """Grid resolution for ``num_voxels`` over the field's current box (``resolution_for_voxels``)."""
         box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
-        return resolution_for_voxels(num_voxels, box, self._span_stride(), self.config.scale_spanning_rounding)
+        return resolution_for_voxels(num_voxels, box, spanning_stride(self.config), self.config.scale_spanning_rounding)
 
     def _refuse_a_checkpoint_without_the_far_background(self, state_dict, prefix, *args) -> None:
         """Loading hook: a checkpoint trained without a far background cannot fill this model's. nerfstudio's
@@ -364,17 +354,8 @@ class FrugalNeRFModel(Model):
         return 1
 
     def seen_by_training_views(self) -> Optional[Callable[[Tensor], Tensor]]:
-        """points -> whether some training camera sees them, for the alpha mask to empty the rest
-        (``objective.carve_unseen_space``), or None where it keeps it (or the training views are not known)."""
-        views = self.reference_views
-        if views is None or not objective.carve_unseen_space(self.config, self.ndc is not None, self.warp_regime):
-            return None
-        height, width = views.images.shape[1:3]
-
-        def seen(points: Tensor) -> Tensor:
-            return views_seeing(points, views.camera_to_worlds, views.intrinsics, (width, height)) > 0
-
-        return seen
+        """For the alpha mask (``training_schedule``): ``objective.seen_by_training_views`` of this model's views."""
+        return objective.seen_by_training_views(self.config, self.ndc is not None, self.warp_regime, self.reference_views)
 
     @property
     def has_room(self) -> bool:

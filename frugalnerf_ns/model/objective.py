@@ -9,7 +9,7 @@ the start) while the distortion weight grows with it.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Dict, List, NamedTuple, Optional, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import torch
 from jaxtyping import Bool, Float, Int
@@ -30,6 +30,7 @@ from frugalnerf_ns.model.geometric_adaptation import (
 )
 from frugalnerf_ns.geometry.contraction import contract_along_ray
 from frugalnerf_ns.geometry.novel_views import nearest_other_view
+from frugalnerf_ns.geometry.scene_analysis import views_seeing
 from frugalnerf_ns.scoring.metrics import composite
 from frugalnerf_ns.model.rendering import StepRender
 
@@ -364,6 +365,21 @@ def carve_unseen_space(cfg: "FrugalNeRFSettings", ndc: bool, regime: WarpRegime)
     if ndc or cfg.carve_unseen == "off":
         return False
     return cfg.carve_unseen == "on" or not regime.warps
+
+
+def seen_by_training_views(
+    cfg: "FrugalNeRFSettings", ndc: bool, regime: WarpRegime, views: Optional[ReferenceViews]
+) -> Optional[Callable[[Tensor], Tensor]]:
+    """points -> whether some training camera sees them, for the alpha mask to empty the rest, or None where it
+    keeps them (``carve_unseen_space`` says so, or the training views are not known)."""
+    if views is None or not carve_unseen_space(cfg, ndc, regime):
+        return None
+    height, width = views.images.shape[1:3]
+
+    def seen(points: Tensor) -> Tensor:
+        return views_seeing(points, views.camera_to_worlds, views.intrinsics, (width, height)) > 0
+
+    return seen
 
 
 def geo_weights(cfg: "FrugalNeRFSettings", warps: bool = True) -> Tuple[float, float]:
