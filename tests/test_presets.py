@@ -46,6 +46,9 @@ def test_paper_preset_holds_the_paper_settings():
     assert model.num_lower_scales == 2 and model.downsample_ratio == 4
     assert model.distance_scale == 25.0 and model.density_activation == "relu"
     assert model.step_ratio == 0.5
+    # Not in the paper either: the grids beyond a capture's box; frugalnerf-cpu measured 256^3, the paper's keeps 128^3.
+    assert model.outer_space_resolution == 128
+    assert presets.build_trainer_config("frugalnerf-cpu").pipeline.model.outer_space_resolution == 256
     # Not a paper term: the CPU presets' photometric consistency is off here.
     assert model.photometric_weight == 0.0 and model.photometric_ssim_share == 0.0
     assert config.optimizers["encodings"]["optimizer"].lr == 0.08
