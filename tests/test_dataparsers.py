@@ -140,6 +140,23 @@ def test_an_llff_capture_that_sweeps_around_gets_its_frame_from_the_training_cam
     assert "training cameras' average" not in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("forward_facing", [True, False])
+def test_llff_records_its_scaling_and_recentring_as_the_dataparser_transform(tmp_path, forward_facing):
+    """Poses mapped back with nerfstudio's own inverse land on poses_bounds.npy's cameras (OpenGL axes)."""
+    import numpy as np
+
+    from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
+
+    fx.write_llff(tmp_path / "scene", forward_facing=forward_facing)
+    outputs = LLFFDataParserConfig(data=tmp_path / "scene", downscale_factor=2, train_views=(0, 1), test_views=(5, 9),
+                                   ndc=False).setup().get_dataparser_outputs("train")
+    rows = np.load(tmp_path / "scene" / "poses_bounds.npy")[:, :15].reshape(-1, 3, 5)
+    expected = torch.from_numpy(llff_to_opengl(rows[:, :, :4])[[0, 1]]).float()
+    back = outputs.transform_poses_to_original_space(outputs.cameras.camera_to_worlds, camera_convention="opengl")
+    assert not torch.allclose(outputs.cameras.camera_to_worlds, expected, atol=1e-3)  # the model frame differs
+    assert torch.allclose(back, expected, atol=1e-4)
+
+
 def test_colmap_photos_are_read_from_the_cache_or_from_images_n_beside_them(tmp_path, capsys):
     scene = tmp_path / "colmap"
     fx.write_colmap_photos(scene)

@@ -2,6 +2,7 @@
 EXIF orientation and focal length honoured, test photos registered, the estimate's points used as the sparse
 depth, one-line errors; and a short training run on it."""
 
+import json
 import math
 from pathlib import Path
 
@@ -165,6 +166,10 @@ def test_training_on_photos_uses_the_estimated_points(tmp_path):
     metrics, _ = trainer.pipeline.get_eval_image_metrics_and_images(step=30)
     assert math.isfinite(metrics["psnr"])
     assert sorted((tmp_path / "out").rglob("step-*.ckpt"))
+    # Photos without cameras end their training with where the next photo would help most.
+    suggestion = json.loads((trainer.base_dir / "next_view.json").read_text())
+    assert len(suggestion["suggestions"]) == 3 and (trainer.base_dir / "next_view.png").is_file()
+    assert (data / "camera_paths" / "next_view.json").is_file()  # where the viewer's render panel looks
 
 
 def test_focal_length_options_reach_the_estimate_through_frugal_auto(tmp_path):

@@ -33,9 +33,12 @@ def training_view_coverage(
     depths: Sequence[Float[Tensor, "height width"]],
     images: Sequence[Float[Tensor, "height width 3"]],
     tolerance: float = 0.05,
+    occlusion_only: bool = False,
 ) -> Coverage:
     """A point counts as seen by a camera when it projects inside the image and the camera's depth at that
     (nearest) pixel is its distance from the camera within ``tolerance`` (relative): nothing in front hides it.
+    With ``occlusion_only``, a point nearer than that depth counts as seen too (only what lies behind the camera's
+    surface is hidden): for depths from two renders of an unsure model, which rarely agree to a few per cent.
 
     The distance compared is the Euclidean one from the camera centre, as rendered depths are distances along
     unit rays."""
@@ -52,7 +55,8 @@ def training_view_coverage(
         col = u.clamp(0, width - 1).long()
         row = v.clamp(0, height - 1).long()
         distance = (points - c2w[:3, 3]).norm(dim=-1)
-        visible = inside & ((depth[row, col] - distance).abs() <= tolerance * distance)
+        behind = distance - depth[row, col]
+        visible = inside & ((behind <= tolerance * distance) if occlusion_only else (behind.abs() <= tolerance * distance))
         in_frustum |= inside
         seen_by += visible.long()
         first = visible & ~colored

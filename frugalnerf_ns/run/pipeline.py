@@ -9,11 +9,13 @@ the viewer; not ns-render, which opens no images) have it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Type
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from frugalnerf_ns.geometry.viewpoints import coverage_line
 from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC
 from frugalnerf_ns.model.objective import carve_unseen_space, geo_weights, uses_relative_sparse_depth
 from frugalnerf_ns.run.checkpoints import use_intact_checkpoints_in_eval_tools
@@ -142,5 +144,16 @@ def scene_summary(datamanager, model) -> str:
         f"frugalnerf scene: {datamanager.scene_type} ({detected}: views within {layout.spread_degrees:.1f} deg of their "
         f"mean, cameras cover {layout.coverage_degrees:.0f} deg around the focus); {views} training views\n"
         f"  space: {space}; {grid}\n"
-        f"  losses: geometric adaptation {geo}, novel rays {novel}, sparse depth {sparse}, occlusion {occlusion}"
+        f"  losses: geometric adaptation {geo}, novel rays {novel}, sparse depth {sparse}, occlusion {occlusion}\n"
+        f"  photos: {photo_coverage(datamanager)}"
     )
+
+
+def photo_coverage(datamanager) -> str:
+    """How the training photos cover the subject, from their cameras (and the sparse points' count), and where a
+    photo would help most: before training, so a user can retake first (``frugalnerf-next-view`` ranks viewpoints
+    with the trained model)."""
+    names = [Path(f).name for f in datamanager.train_dataparser_outputs.image_filenames]
+    points = None if datamanager.sparse is None else datamanager.sparse.num_points
+    return coverage_line(datamanager.train_dataset.cameras.camera_to_worlds, names,
+                         datamanager.scene_type == "forward-facing", points)

@@ -52,6 +52,9 @@ class FrugalTrainerConfig(TrainerConfig):
     """Steps every schedule spans: the learning rates' and loss weights' decay, grid upsampling and the alpha
     mask (--pipeline.model.upsample-at / alpha-mask-at are fractions of it). None: --max-num-iterations of a run
     started from scratch; a resumed run keeps the one stored in its checkpoint."""
+    suggest_next_view: bool = True
+    """At the end of a training on photos without cameras or a capture around a subject (a room beyond the box),
+    rank where the next photo would help most (``frugalnerf-next-view``, ~30 s on 2 cores) and print one line."""
 
     def set_timestamp(self) -> None:
         """nerfstudio's timestamp (to the second), made unique: the run folder is claimed here, before ns-train
@@ -179,6 +182,8 @@ class FrugalTrainer(Trainer):
             # Last of the step's callbacks (after the model's upsampling and alpha mask): from here on a
             # checkpoint of this step holds what nerfstudio's own save at this step would.
             self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self._mark_completed))
+            if getattr(self.config, "suggest_next_view", False):
+                self.callbacks.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN], self._suggest_next_view))
         except BaseException:
             # nerfstudio wrote config.yml before calling us: a run that never started leaves no folder.
             remove_config_only_run_folder(self.base_dir, Path(self.config.output_dir))
@@ -243,6 +248,23 @@ class FrugalTrainer(Trainer):
 
     def _mark_completed(self, step: int) -> None:
         self.completed_step = step
+
+    def _suggest_next_view(self, step: int) -> None:
+        """The end-of-training line of a photo-only or capture scene: where the next photo would help most (the
+        files go into the run folder). A failure here costs the user the suggestion, never the run."""
+        from frugalnerf_ns.tools.next_view import suggest, wants_next_view
+
+        pipeline = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        if self.interrupted_by is not None or not wants_next_view(pipeline):
+            return
+        pipeline.eval()
+        try:
+            suggest(self.base_dir / "config.yml", pipeline=pipeline, print_fn=CONSOLE.print)
+        except Exception as err:  # noqa: BLE001 - the run is saved; only the suggestion is lost
+            CONSOLE.print(f"[bold yellow]frugalnerf: no next-photo suggestion ({type(err).__name__}: {err}); "
+                          f"frugalnerf-next-view --load-config {self.base_dir / 'config.yml'} retries it")
+        finally:
+            pipeline.train()
 
     def _catch_stop_signals(self) -> Dict[int, Any]:
         """Handle SIGINT and SIGTERM by asking the loop to stop after the step under way (nerfstudio's

@@ -15,7 +15,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
-from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl, recenter
+from frugalnerf_ns.geometry.camera_conventions import average_pose, llff_to_opengl, recenter
 from frugalnerf_ns.geometry.scene_analysis import (
     FOCUS_BOX_SCALE,
     FORWARD_FACING_MAX_SPREAD,
@@ -78,10 +78,10 @@ class LLFF(DataParser):
         # cameras look elsewhere (a phone sweeping 180 degrees around a table, a split at one end of it) NDC
         # would see them from the side: there the training cameras' average defines it.
         off_axis = largest_angle_to_mean_direction(torch.from_numpy(c2w), views.train)
-        if off_axis <= FORWARD_FACING_MAX_SPREAD:
-            c2w = recenter(c2w)
-        else:
-            c2w = recenter(c2w, frame=c2w[views.train])
+        reference = c2w if off_axis <= FORWARD_FACING_MAX_SPREAD else c2w[views.train]
+        transform = data_frame_transform(reference, scale)
+        c2w = recenter(c2w, frame=reference)
+        if off_axis > FORWARD_FACING_MAX_SPREAD:
             if split == "train":
                 CONSOLE.print(
                     f"frugalnerf: {data}: a training camera looks {off_axis:.0f} deg away from the capture's mean "
@@ -103,7 +103,7 @@ class LLFF(DataParser):
 
         return forward_facing_outputs(
             files, c2w[indices], train_c2w, (focal, focal, width / 2.0, height / 2.0),
-            (width, height), (float(bounds.min()), float(bounds.max())), ndc, float(scale), box,
+            (width, height), (float(bounds.min()), float(bounds.max())), ndc, float(scale), box, transform,
         )
 
 
@@ -150,9 +150,20 @@ def scene_space(train_c2w: np.ndarray, ndc: Optional[bool], focus_box_scale: flo
     return ndc, box
 
 
+def data_frame_transform(scaled_reference: np.ndarray, scale: float) -> torch.Tensor:
+    """nerfstudio's ``dataparser_transform`` (3x4) of poses scaled by ``scale`` and then recentred on the average
+    camera of ``scaled_reference`` (``recenter``): model = scale x (transform @ data), as ``dataparser_transforms.json``
+    records it and ``DataparserOutputs.transform_poses_to_original_space`` inverts it."""
+    average = np.eye(4)
+    average[:3] = average_pose(scaled_reference)
+    inverse = np.linalg.inv(average)
+    inverse[:3, 3] /= scale
+    return torch.from_numpy(inverse[:3]).float()
+
+
 def forward_facing_outputs(
     images, c2w: np.ndarray, train_c2w: np.ndarray, intrinsics, size, near_far, ndc: bool, scale: float,
-    box: Optional[torch.Tensor] = None,
+    box: Optional[torch.Tensor] = None, transform: Optional[torch.Tensor] = None,
 ) -> DataparserOutputs:
     """Outputs of an LLFF-like scene (LLFF, RealEstate, photos): NDC box and NDC parameters, or a metric box:
     ``box`` (the part of an unbounded scene the grid holds; beyond it the model learns a far background,
@@ -181,7 +192,8 @@ def forward_facing_outputs(
     else:
         scene_box = SceneBox(aabb=frustum_box(train_c2w, float(fx), width, height, near_far[1]))
     return DataparserOutputs(
-        image_filenames=list(images), cameras=cameras, scene_box=scene_box, metadata=metadata, dataparser_scale=scale
+        image_filenames=list(images), cameras=cameras, scene_box=scene_box, metadata=metadata, dataparser_scale=scale,
+        **({} if transform is None else {"dataparser_transform": transform}),
     )
 
 

@@ -1,0 +1,183 @@
+"""Which next photo helps most: the suggestion against the largest-gap rule and random frames, on the captures.
+
+    python scripts/next_view_study.py plan                 # the splits, test frames and rule picks (no results used)
+    python scripts/next_view_study.py run [--iterations N] # trains every planned run not yet done, one at a time
+    python scripts/next_view_study.py table                # the table of every run (Markdown) and its JSON record
+
+Protocol (fixed before any result was looked at): per capture, the frames in azimuth order around the focus of all
+its cameras; every ``TEST_EVERY``-th of them is a test frame, used by no run for training. Each starting split holds
+k photos; the next photo is (a) ``frugalnerf-next-view``'s first suggestion on the run trained with the k photos,
+snapped to the nearest capture frame, (b) the frame nearest the middle of the largest azimuth gap between the photos
+that holds a frame, (c) two random frames (seeded by the split's name). Each k+1 split trains ``frugalnerf-cpu`` and
+is scored on the test frames with the project's evaluator.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Dict, List
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "captures"
+RUNS = ROOT / "outputs" / "next_view_study"
+PLAN = ROOT / "docs" / "notes" / "next_view" / "plan.json"
+RECORD = ROOT / "docs" / "notes" / "next_view" / "study.json"
+SUGGESTIONS = ROOT / "docs" / "notes" / "next_view" / "suggestions.json"
+TEST_EVERY = {"juice_box": 8, "bird": 12}
+# Starting splits as target azimuths (degrees around the focus of all frames; the juice box's frames span 0-82,
+# the bird's the whole circle): a pair at one end, a pair across the arc, three photos; the bird's gate split
+# (frames 0 23 46), a close pair, three photos 120 degrees apart.
+STARTS = {
+    "juice_box": {"jb_end_pair": [5, 30], "jb_wide_pair": [10, 75], "jb_three": [20, 40, 55]},
+    "bird": {"bird_gate3": [0, 32, 78], "bird_pair": [0, 47], "bird_three_120": [0, 120, -120]},
+}
+
+
+def frame_azimuths(scene: str) -> torch.Tensor:
+    """Each frame's azimuth (degrees) around the focus of all the capture's cameras, about their mean up."""
+    from frugalnerf_ns.data.dataparsers.llff import load_poses_bounds
+    from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
+    from frugalnerf_ns.geometry.viewpoints import subject_frame
+
+    poses, _ = load_poses_bounds(DATA / scene / "poses_bounds.npy")
+    c2w = torch.from_numpy(llff_to_opengl(poses[:, :, :4]))
+    frame = subject_frame(c2w)
+    return frame.azimuths(c2w[:, :3, 3])
+
+
+def angular(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def largest_gap_frame(azimuths: torch.Tensor, photos: List[int], pool: List[int]) -> int:
+    """The pool frame nearest the middle of the largest azimuth gap between neighbouring photos that holds a pool frame."""
+    angles = sorted((float(azimuths[p]) % 360.0, p) for p in photos)
+    best = None
+    for i, (start, _) in enumerate(angles):
+        end = angles[(i + 1) % len(angles)][0] + (360.0 if i + 1 == len(angles) else 0.0)
+        inside = [f for f in pool if 0 < (float(azimuths[f]) % 360.0 - start) % 360.0 < end - start]
+        if inside and (best is None or end - start > best[0]):
+            middle = (start + end) / 2.0
+            best = (end - start, min(inside, key=lambda f: angular(float(azimuths[f]), middle)))
+    assert best is not None, "no pool frame between the photos"
+    return best[1]
+
+
+def plan() -> Dict:
+    splits = {}
+    for scene, starts in STARTS.items():
+        azimuths = frame_azimuths(scene)
+        order = azimuths.argsort().tolist()
+        test = sorted(order[:: TEST_EVERY[scene]])
+        for name, targets in starts.items():
+            free = [f for f in range(len(azimuths)) if f not in test]
+            photos = [min(free, key=lambda f: angular(float(azimuths[f]), t)) for t in targets]
+            pool = [f for f in free if f not in photos]
+            draws = random.Random(name).sample(pool, 2)
+            splits[name] = {
+                "scene": scene, "photos": photos, "test": test, "pool_size": len(pool),
+                "photo_azimuths": [round(float(azimuths[p]), 1) for p in photos],
+                "picks": {"gap": largest_gap_frame(azimuths, photos, pool), "random1": draws[0], "random2": draws[1]},
+            }
+    return {"protocol": __doc__.split("Protocol")[1].strip(), "splits": splits}
+
+
+def run_minutes(out: Path) -> float:
+    """Training minutes of a run: from its config.yml (written at start) to its last checkpoint."""
+    config = next(out.rglob("config.yml"))
+    last = max(out.rglob("step-*.ckpt"), key=lambda path: path.stat().st_mtime)
+    return (last.stat().st_mtime - config.stat().st_mtime) / 60.0
+
+
+def train(name: str, scene: str, views: List[int], test: List[int], iterations: int, seed: int = 42) -> Path:
+    """Trains (unless its last checkpoint exists) and scores one run; returns its folder."""
+    out = RUNS / name
+    if (out / "scores.json").is_file():
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    tools = [sys.executable, "-m", "frugalnerf_ns.tools.offline_tools"]
+    while subprocess.run(["pgrep", "-f", "offline_tools train"], capture_output=True).returncode == 0:
+        time.sleep(10)  # one training at a time (a queue restarted while its last run still trains)
+    if not list(out.rglob(f"step-{iterations - 1:09d}.ckpt")):
+        with open(out / "train.log", "w") as log:
+            subprocess.run(tools + ["train", "frugalnerf-cpu", "--data", str(DATA / scene), "--output-dir", str(out),
+                                    "--vis", "tensorboard", "--machine.seed", str(seed), "--pipeline.datamanager.seed",
+                                    str(seed), "--max-num-iterations", str(iterations), "frugal-llff", "--train-views",
+                                    *map(str, views), "--test-views", *map(str, test)],
+                           stdout=log, stderr=subprocess.STDOUT, check=True, cwd=ROOT)
+    config = next(out.rglob("config.yml"))
+    result = subprocess.run(tools + ["eval", str(config)], capture_output=True, text=True, check=True, cwd=ROOT)
+    scores = json.loads(result.stdout.split("RESULT ")[-1])
+    (out / "scores.json").write_text(json.dumps({"train_minutes": run_minutes(out), "config": str(config.relative_to(ROOT)),
+                                                 "views": views, **scores}, indent=1))
+    return out
+
+
+def frame_centres(scene: str) -> torch.Tensor:
+    """Every frame's camera centre in the data's own frame (poses_bounds.npy)."""
+    from frugalnerf_ns.data.dataparsers.llff import load_poses_bounds
+
+    poses, _ = load_poses_bounds(DATA / scene / "poses_bounds.npy")
+    return torch.from_numpy(poses[:, :, 3]).double()
+
+
+def suggest(run: Path, split: Dict, tool_root: Path) -> Dict:
+    """``frugalnerf-next-view`` on the k-photo run (the tool of ``tool_root``'s tree), each suggestion snapped to the
+    pool frame whose camera centre is nearest."""
+    config = next(run.rglob("config.yml"))
+    result = subprocess.run([sys.executable, "-m", "frugalnerf_ns.tools.next_view", "--load-config", str(config),
+                             "--no-viewer-copy"], capture_output=True, text=True, cwd=tool_root)
+    if result.returncode != 0:
+        raise SystemExit(f"next-view failed on {config}:\n{result.stdout[-2000:]}\n{result.stderr[-3000:]}")
+    record = json.loads((config.parent / "next_view.json").read_text())
+    centres = frame_centres(split["scene"])
+    pool = [f for f in range(len(centres)) if f not in split["test"] and f not in split["photos"]]
+    snapped = []
+    for suggestion in record["suggestions"]:
+        position = torch.tensor(suggestion["camera_to_world_data_frame"], dtype=torch.float64)[:3, 3]
+        distance = (centres[pool] - position).norm(dim=-1)
+        snapped.append({"frame": pool[int(distance.argmin())], "distance": float(distance.min()),
+                        "description": suggestion["description"], "score": suggestion["score"]})
+    return {"seconds": record["seconds"], "score": record["score"], "snapped": snapped}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("command", choices=["plan", "run", "table"])
+    parser.add_argument("--iterations", type=int, default=750)
+    parser.add_argument("--only", nargs="*", default=None, help="split names to run, in this order")
+    parser.add_argument("--tool-root", type=Path, default=ROOT, help="source tree whose frugalnerf-next-view suggests")
+    args = parser.parse_args()
+    if args.command == "plan":
+        PLAN.parent.mkdir(parents=True, exist_ok=True)
+        PLAN.write_text(json.dumps(plan(), indent=1) + "\n")
+        print(PLAN.read_text())
+        return
+    study = json.loads(PLAN.read_text())
+    if args.command == "run":
+        tag = f"i{args.iterations}"
+        suggestions = json.loads(SUGGESTIONS.read_text()) if SUGGESTIONS.is_file() else {}
+        for name in args.only or list(study["splits"]):
+            split = study["splits"][name]
+            base = train(f"{tag}/{name}/k", split["scene"], split["photos"], split["test"], args.iterations)
+            key = f"{tag}/{name}"
+            if key not in suggestions:
+                suggestions[key] = suggest(base, split, args.tool_root)
+                SUGGESTIONS.write_text(json.dumps(suggestions, indent=1) + "\n")
+            picks = {"suggestion": suggestions[key]["snapped"][0]["frame"], **split["picks"]}
+            for rule, frame in picks.items():
+                train(f"{tag}/{name}/frame{frame}", split["scene"], split["photos"] + [frame], split["test"], args.iterations)
+            print(name, "done", flush=True)
+
+
+if __name__ == "__main__":
+    main()
