@@ -279,7 +279,6 @@ def suggest(config_path: Path, count: int = 3, step_degrees: float = 10.0, score
     folder = run_folder(config_path)
     scorer = Scorer(pipeline)
     suggestions, facts = rank_candidates(pipeline, count, step_degrees, score, scorer)
-    camera = small_cameras(pipeline.datamanager.train_dataset.cameras, PICTURE_SIDE)[0:1]
     rows = []
     for rank, suggestion in enumerate(suggestions, start=1):
         signals, rgb = scorer.render_signals(suggestion.camera_to_world, PICTURE_SIDE)
