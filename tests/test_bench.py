@@ -20,7 +20,7 @@ def test_installed_command_lists_every_subcommand_and_refuses_an_unknown_one():
     listed = subprocess.run([BENCH], capture_output=True, text=True)
     assert listed.returncode == 0
     names = [line.split()[0] for line in listed.stdout.splitlines() if line.startswith("  ")]
-    assert names == list(cli.SUBCOMMANDS) == ["scenes", "tradeoff", "vs-tensorf", "render", "viewer", "startup", "cameras",
+    assert names == list(cli.SUBCOMMANDS) == ["scenes", "tradeoff", "vs-tensorf", "render", "viewer", "next-view", "startup", "cameras",
                                               "model-size", "step", "profile", "gpu-check"]
     unknown = subprocess.run([BENCH, "bogus"], capture_output=True, text=True)
     assert unknown.returncode == 2 and unknown.stdout == ""

@@ -122,3 +122,15 @@ def test_a_run_whose_cameras_cannot_be_read_gets_one_line(trained_run, procedura
         main(["--load-config", str(copy / "config.yml"), "--no-viewer-copy"])
     message = str(stopped.value.code)
     assert message.startswith("frugalnerf: error: ") and "transforms.json" in message and "\n" not in message
+
+
+def test_the_benchmark_times_the_command_and_the_start_up_line(trained_run, tmp_path, capsys):
+    from frugalnerf_ns.bench.next_view import main
+
+    _, run_dir = trained_run
+    out = tmp_path / "bench.json"
+    rows = main([str(run_dir / "config.yml"), "--repeats", "1", "--out", str(out)])
+    saved = json.loads(out.read_text())
+    assert [row["what"] for row in saved["rows"]] == [row["what"] for row in rows] and len(rows) == 3
+    assert all(row["seconds"] > 0 for row in rows) and saved["coverage_line"].startswith("3 photos over 80 degrees")
+    assert "frugalnerf-next-view in all" in capsys.readouterr().out

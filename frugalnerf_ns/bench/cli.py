@@ -17,6 +17,7 @@ SUBCOMMANDS = {
     "vs-tensorf": ("vs_tensorf", "time per step, memory and test PSNR against nerfstudio's tensorf at equal grid and rays"),
     "render": ("render", "seconds per spiral frame and per test view of a trained run, before and after full-scale-only"),
     "viewer": ("viewer", "seconds per viewer frame and moving preview of trained runs, per render mode"),
+    "next-view": ("next_view", "seconds for frugalnerf-next-view on a trained run, and for the start-up coverage line"),
     "startup": ("startup", "start-up time against the number of training views: parsing, images, SIFT, matching, triangulation"),
     "cameras": ("photo_cameras", "cameras estimated from LLFF photos alone against the published poses (photos without cameras)"),
     "model-size": ("model_size", "checkpoint size, parameters and first-step memory per preset at its final grid"),
