@@ -149,6 +149,46 @@ def suggest(run: Path, split: Dict, tool_root: Path) -> Dict:
     return {"seconds": record["seconds"], "score": record["score"], "snapped": snapped}
 
 
+def table(study: Dict, tag: str) -> None:
+    """Every finished run as a Markdown table per split, the means over the finished splits, and the record."""
+    suggestions = json.loads(SUGGESTIONS.read_text()) if SUGGESTIONS.is_file() else {}
+    record = {"protocol": study["protocol"], "iterations": int(tag[1:]), "preset": "frugalnerf-cpu", "seed": 42,
+              "machine": "2-core AMD EPYC (AVX-512), torch 2.14.1", "evaluator":
+              "python -m frugalnerf_ns.tools.offline_tools eval <run>/config.yml", "splits": {}}
+    lines = ["| split | photos (azimuth) | rule | next frame (azimuth) | test PSNR / SSIM / LPIPS | train min |",
+             "|---|---|---|---|---|---|"]
+    gains = {"random": [], "gap": []}
+    for name, split in study["splits"].items():
+        key = f"{tag}/{name}"
+        if key not in suggestions:
+            continue
+        azimuths = frame_azimuths(split["scene"])
+        picks = {"suggestion": suggestions[key]["snapped"][0]["frame"], **split["picks"]}
+        runs = {"k photos": RUNS / tag / name / "k"} | {rule: RUNS / tag / name / f"frame{f}" for rule, f in picks.items()}
+        scores = {rule: json.loads((run / "scores.json").read_text()) for rule, run in runs.items()
+                  if (run / "scores.json").is_file()}
+        photos = ", ".join(f"{p} ({float(azimuths[p]):.0f})" for p in split["photos"])
+        for rule, score in scores.items():
+            frame = picks.get(rule)
+            where = "-" if frame is None else f"{frame} ({float(azimuths[frame]):.0f})"
+            lines.append(f"| {name} | {photos} | {rule} | {where} | {score['psnr']:.2f} / {score['ssim']:.3f} / "
+                         f"{score['lpips']:.3f} | {score['train_minutes']:.1f} |")
+        record["splits"][name] = {"scene": split["scene"], "photos": split["photos"], "test": split["test"],
+                                  "picks": picks, "suggestion": suggestions[key],
+                                  "runs": {rule: {k: score[k] for k in ("psnr", "ssim", "lpips", "train_minutes", "views")}
+                                           for rule, score in scores.items()}}
+        if all(rule in scores for rule in ("suggestion", "gap", "random1", "random2")):
+            random_psnr = (scores["random1"]["psnr"] + scores["random2"]["psnr"]) / 2.0
+            gains["random"].append(scores["suggestion"]["psnr"] - random_psnr)
+            gains["gap"].append(scores["suggestion"]["psnr"] - scores["gap"]["psnr"])
+    record["mean_gain_db"] = {rule: (sum(v) / len(v) if v else None) for rule, v in gains.items()}
+    record["complete_splits"] = len(gains["gap"])
+    RECORD.write_text(json.dumps(record, indent=1) + "\n")
+    print("\n".join(lines))
+    print(f"\nover {len(gains['gap'])} complete splits: suggestion - random (mean of 2 draws) "
+          f"{record['mean_gain_db']['random']} dB, suggestion - largest gap {record['mean_gain_db']['gap']} dB")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("command", choices=["plan", "run", "table"])
@@ -162,6 +202,9 @@ def main() -> None:
         print(PLAN.read_text())
         return
     study = json.loads(PLAN.read_text())
+    if args.command == "table":
+        table(study, f"i{args.iterations}")
+        return
     if args.command == "run":
         tag = f"i{args.iterations}"
         suggestions = json.loads(SUGGESTIONS.read_text()) if SUGGESTIONS.is_file() else {}

@@ -154,6 +154,8 @@ class Candidates:
     camera_to_worlds: Float[Tensor, "n 3 4"]
     layout: str
     """"ring" (around the subject) or "plane" (beside the forward-facing photos)."""
+    subject: Float[Tensor, "3"]
+    """The point every candidate looks at."""
 
 
 def candidate_poses(
@@ -180,7 +182,7 @@ def candidate_poses(
         elevation = frame.elevations(centres).median().expand(count)
         distance = frame.distances(centres).median().expand(count)
         positions = frame.positions(azimuths, elevation, distance)
-        return Candidates(look_at_poses(positions, frame.focus, frame.up).float(), "ring")
+        return Candidates(look_at_poses(positions, frame.focus, frame.up).float(), "ring", frame.focus)
     mean = torch.from_numpy(average_pose(c2w.numpy()))
     rotation, centre = mean[:, :3], mean[:, 3]
     offsets = (c2w[:, :3, 3] - centre) @ rotation
@@ -191,7 +193,7 @@ def candidate_poses(
     grid_x, grid_y = torch.meshgrid(steps * half[0], steps * half[1], indexing="xy")
     positions = centre + grid_x.reshape(-1, 1) * rotation[:, 0] + grid_y.reshape(-1, 1) * rotation[:, 1]
     target = centre - rotation[:, 2] * look_at_depth
-    return Candidates(look_at_poses(positions, target, rotation[:, 1]).float(), "plane")
+    return Candidates(look_at_poses(positions, target, rotation[:, 1]).float(), "plane", target)
 
 
 def _photo_label(names: Sequence[str], index: int) -> str:

@@ -34,6 +34,8 @@ class ViewSignals:
     single: float
     disagreement: float
     beyond: float
+    median_depth: float
+    """Median distance to the surface the candidate sees (a viewpoint inside the subject sees one right away)."""
 
     def as_dict(self) -> Dict[str, float]:
         return asdict(self)
@@ -47,6 +49,7 @@ class PixelSignals:
     seen_by: Tensor
     disagreement: Tensor
     beyond: Tensor
+    depth: Tensor
 
     def summary(self) -> ViewSignals:
         return ViewSignals(
@@ -54,6 +57,7 @@ class PixelSignals:
             single=float((self.seen_by == 1).float().mean()),
             disagreement=float(self.disagreement.mean()),
             beyond=float(self.beyond.mean()),
+            median_depth=float(self.depth.median()),
         )
 
 
@@ -87,7 +91,7 @@ def pixel_signals(
     coverage = training_view_coverage(points, list(photo_camera_to_worlds), list(photo_intrinsics),
                                       list(photo_depths), images, tolerance, occlusion_only=True)
     beyond = (1.0 - accumulation).clamp(0.0, 1.0) if has_room else torch.zeros_like(accumulation)
-    return PixelSignals(coverage.seen_by, scale_depth_disagreement(depths), beyond)
+    return PixelSignals(coverage.seen_by, scale_depth_disagreement(depths), beyond, depths[0])
 
 
 SCORES: Dict[str, Callable[[ViewSignals], float]] = {
@@ -101,3 +105,8 @@ SCORES: Dict[str, Callable[[ViewSignals], float]] = {
 """Candidate scores (higher: the photo would teach more), compared in docs/notes/next-view.md."""
 
 DEFAULT_SCORE = "unseen_or_single"
+SCORES_NEEDING_SCALES = {"disagreement", "coverage_and_disagreement"}
+"""Scores that read the lower scales' depths (the candidates are then rendered at every scale, ~2x slower)."""
+BLOCKED_FRACTION = 0.25
+"""A candidate whose median surface distance is under this fraction of its distance to the subject stands inside
+the subject or behind a wall of the modelled room: it is not suggested."""

@@ -32,8 +32,8 @@ import torch
 
 from frugalnerf_ns.errors import UserError
 
-SCORE_SIDE = 96
-"""Longest side (pixels) of the candidate renders that are scored: ~5k rays each."""
+SCORE_SIDE = 64
+"""Longest side (pixels) of the candidate renders that are scored: ~2-3k rays each."""
 PICTURE_SIDE = 320
 
 
@@ -56,9 +56,11 @@ def all_scales(model) -> Iterator[None]:
         model.num_rendered_scales = previous
 
 
-def _render(model, camera) -> Dict[str, torch.Tensor]:
+def _render(model, camera, scales: bool) -> Dict[str, torch.Tensor]:
+    """Every output of one camera's render: the full scale only, or every scale with ``scales``."""
     bundle = camera.generate_rays(camera_indices=0, keep_shape=True)
-    with torch.no_grad(), all_scales(model):
+    which = all_scales(model) if scales else model.full_scale_only()
+    with torch.no_grad(), which:
         outputs = model.get_outputs_for_camera_ray_bundle(bundle.to(model.device))
     return {"origins": bundle.origins.reshape(-1, 3).cpu(), "directions": bundle.directions.reshape(-1, 3).cpu(),
             **{k: v.cpu() for k, v in outputs.items() if isinstance(v, torch.Tensor)}}
@@ -75,33 +77,34 @@ def small_cameras(cameras, side: int):
 class Scorer:
     """Renders candidates of one trained pipeline and turns the renders into signals."""
 
-    def __init__(self, pipeline, side: int = SCORE_SIDE) -> None:
+    def __init__(self, pipeline, side: int = SCORE_SIDE, scales: bool = False) -> None:
         from frugalnerf_ns.data.novel_cameras import cameras_at
 
         self.model = pipeline.model
         self.datamanager = pipeline.datamanager
         self.side = side
+        self.scales = scales  # render the lower scales too (the depth-disagreement signal needs them)
         self.photos = small_cameras(self.datamanager.train_dataset.cameras, side)
         self.cameras_at = cameras_at
         self.has_room = bool(getattr(self.model, "has_room", False))
         self.photo_c2w, self.photo_k, self.photo_depths = [], [], []
         for index in range(len(self.photos)):
             camera = self.photos[index : index + 1]
-            out = _render(self.model, camera)
+            out = _render(self.model, camera, scales=False)
             height, width = int(camera.height), int(camera.width)
             self.photo_c2w.append(camera.camera_to_worlds[0].cpu())
             self.photo_k.append(torch.tensor([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)]))
             self.photo_depths.append(out["depth"].reshape(height, width))
 
-    def render_signals(self, camera_to_world: torch.Tensor, side: Optional[int] = None):
+    def render_signals(self, camera_to_world: torch.Tensor, side: Optional[int] = None, scales: Optional[bool] = None):
         """(per-pixel signals, render) of a viewpoint, with the photos' intrinsics at ``side`` (default: the
-        scoring size)."""
+        scoring size), every scale rendered with ``scales`` (default: the scorer's choice)."""
         from frugalnerf_ns.model.rendering import scale_suffix
         from frugalnerf_ns.scoring.next_view import pixel_signals
 
         intrinsics = self.photos if side is None else small_cameras(self.datamanager.train_dataset.cameras, side)
         camera = self.cameras_at(camera_to_world[None].float(), intrinsics[0:1])
-        out = _render(self.model, camera)
+        out = _render(self.model, camera, self.scales if scales is None else scales)
         depths = [out["depth"].reshape(-1)]
         scale = 1
         while f"depth{scale_suffix(scale)}" in out:
@@ -185,7 +188,7 @@ def rank_candidates(pipeline, count: int = 3, step_degrees: float = 10.0, score:
                     scorer: Optional[Scorer] = None) -> Tuple[List[Suggestion], Dict[str, object]]:
     """The ``count`` best candidate viewpoints of a trained pipeline, best first, and facts about the ranking."""
     from frugalnerf_ns.geometry.viewpoints import candidate_poses, describe, largest_gap_pose, subject_frame
-    from frugalnerf_ns.scoring.next_view import DEFAULT_SCORE, SCORES
+    from frugalnerf_ns.scoring.next_view import BLOCKED_FRACTION, DEFAULT_SCORE, SCORES, SCORES_NEEDING_SCALES
 
     score = score or DEFAULT_SCORE
     if score not in SCORES:
@@ -197,16 +200,23 @@ def rank_candidates(pipeline, count: int = 3, step_degrees: float = 10.0, score:
     frame = None if forward else subject_frame(photos, datamanager.scene_layout.focus)
     depth = datamanager.spiral_focus_depth() if forward else None
     candidates = candidate_poses(photos, forward, frame, step_degrees, look_at_depth=depth)
-    scorer = scorer or Scorer(pipeline)
-    scored = []
+    scorer = scorer or Scorer(pipeline, scales=score in SCORES_NEEDING_SCALES)
+    subject = candidates.subject.double()
+    scored, blocked = [], 0
     for pose in candidates.camera_to_worlds:
         signals = scorer.render_signals(pose)[0].summary()
+        # A viewpoint inside the subject or behind a wall of the room sees a surface right in front of it.
+        if signals.median_depth < BLOCKED_FRACTION * float((pose[:3, 3].double() - subject).norm()):
+            blocked += 1
+            continue
         scored.append((SCORES[score](signals), pose, signals))
+    if not scored:
+        raise UserError("every candidate viewpoint is blocked by the model's geometry (inside the subject or a wall)")
     scored.sort(key=lambda item: -item[0])
     chosen = distinct_best([pose for _, pose, _ in scored], count)
     suggestions = [Suggestion(pose, value, signals.as_dict(), describe(pose, photos, names, forward, frame))
                    for value, pose, signals in (scored[i] for i in chosen)]
-    facts: Dict[str, object] = {"score": score, "candidates": len(scored), "layout": candidates.layout,
+    facts: Dict[str, object] = {"score": score, "candidates": len(scored), "blocked": blocked, "layout": candidates.layout,
                                 "scene_type": datamanager.scene_type}
     if not forward:
         gap_pose, gap = largest_gap_pose(photos, frame)
@@ -277,11 +287,11 @@ def suggest(config_path: Path, count: int = 3, step_degrees: float = 10.0, score
     started = time.time()
     pipeline = pipeline or load_pipeline(config_path)
     folder = run_folder(config_path)
+    suggestions, facts = rank_candidates(pipeline, count, step_degrees, score)
     scorer = Scorer(pipeline)
-    suggestions, facts = rank_candidates(pipeline, count, step_degrees, score, scorer)
     rows = []
     for rank, suggestion in enumerate(suggestions, start=1):
-        signals, rgb = scorer.render_signals(suggestion.camera_to_world, PICTURE_SIDE)
+        signals, rgb = scorer.render_signals(suggestion.camera_to_world, PICTURE_SIDE, scales=False)
         rows.append((rgb, unsure_map(signals, *rgb.shape[:2]), f"{rank}. {suggestion.description}"))
     write_picture(rows, folder / "next_view.png")
     path = camera_path(suggestions, pipeline.datamanager.train_dataset.cameras[0:1])
