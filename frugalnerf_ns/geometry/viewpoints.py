@@ -251,19 +251,20 @@ def describe(
 
 
 def largest_gap_pose(
-    camera_to_worlds: Float[Tensor, "views 3 4"], frame: Optional[SubjectFrame] = None
+    camera_to_worlds: Float[Tensor, "views 3 4"], frame: Optional[SubjectFrame] = None, rank: int = 0
 ) -> Tuple[Float[Tensor, "3 4"], float]:
     """The viewpoint in the middle of the largest azimuth gap between neighbouring photos (at the photos' median
-    height and distance, looking at the subject) and that gap in degrees: the simple rule a suggestion must beat."""
+    height and distance, looking at the subject) and that gap in degrees: the simple rule a suggestion must beat.
+    ``rank`` 1: the second largest gap (the largest between the photos when the largest is the open side)."""
     c2w = camera_to_worlds.detach().cpu().double()
     frame = frame or subject_frame(c2w)
     centres = c2w[:, :3, 3]
     azimuths = frame.azimuths(centres)
-    gaps = neighbour_gaps(azimuths.tolist())
+    gaps = sorted(neighbour_gaps(azimuths.tolist()), reverse=True)
     if not gaps:
         middle, size = float(azimuths[0]) + 180.0, 360.0
     else:
-        size, before, _ = max(gaps)
+        size, before, _ = gaps[min(rank, len(gaps) - 1)]
         middle = float(azimuths[before]) + size / 2.0
     one = torch.tensor([middle], dtype=torch.float64)
     position = frame.positions(one, frame.elevations(centres).median()[None], frame.distances(centres).median()[None])
@@ -279,7 +280,8 @@ def coverage_line(
     """How the photos cover the subject, from the cameras alone, and where a photo would help most.
 
     Around a subject: the azimuth the photos span and the largest angle between neighbouring photos, judged
-    against ``WELL_COVERED_GAP`` and ``GUESSED_GAP``. Forward-facing: the photos see the scene from the front only,
+    against ``WELL_COVERED_GAP`` and ``GUESSED_GAP``; the advice is the middle of the largest gap between the photos
+    when that is wider than ``WELL_COVERED_GAP``, else the middle of the open side. Forward-facing: the photos see the scene from the front only,
     and their baseline against the distance to what they look at."""
     c2w = camera_to_worlds.detach().cpu().double()
     count = len(c2w)
@@ -302,7 +304,8 @@ def coverage_line(
     inner = sorted(g for g, _, _ in gaps)[:-1]  # the gaps between photos, without the open side
     span = 360.0 - largest
     between = max(inner) if inner else 0.0
-    pose, _ = largest_gap_pose(c2w, frame)
+    # Photos far apart: fill the largest gap between them; photos close together: the open side.
+    pose, _ = largest_gap_pose(c2w, frame, rank=1 if between > WELL_COVERED_GAP else 0)
     where = describe(pose, c2w, names, False, frame)
     spread = f"{count} photos over {span:.0f} degrees around the subject"
     if count > 2:
