@@ -34,7 +34,7 @@ from frugalnerf_ns.errors import UserError
 
 SCORE_SIDE = 64
 """Longest side (pixels) of the candidate renders that are scored: ~2-3k rays each."""
-PICTURE_SIDE = 320
+PICTURE_SIDE = 240
 
 
 @dataclass
@@ -284,11 +284,13 @@ def suggest(config_path: Path, count: int = 3, step_degrees: float = 10.0, score
             viewer_copy: bool = True, pipeline=None, print_fn=print) -> Dict[str, object]:
     """Ranks and writes ``next_view.json``, the camera path and the picture into the run folder; returns the
     JSON written."""
+    from frugalnerf_ns.scoring.next_view import DEFAULT_SCORE, SCORES_NEEDING_SCALES
+
     started = time.time()
     pipeline = pipeline or load_pipeline(config_path)
     folder = run_folder(config_path)
-    suggestions, facts = rank_candidates(pipeline, count, step_degrees, score)
-    scorer = Scorer(pipeline)
+    scorer = Scorer(pipeline, scales=(score or DEFAULT_SCORE) in SCORES_NEEDING_SCALES)
+    suggestions, facts = rank_candidates(pipeline, count, step_degrees, score, scorer)
     rows = []
     for rank, suggestion in enumerate(suggestions, start=1):
         signals, rgb = scorer.render_signals(suggestion.camera_to_world, PICTURE_SIDE, scales=False)
