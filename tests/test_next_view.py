@@ -26,23 +26,28 @@ def suggested(trained_run):
 
 def test_the_suggestion_points_into_the_gap_and_a_duplicate_of_a_photo_ranks_last(suggested):
     from frugalnerf_ns.geometry.viewpoints import angle_difference, candidate_poses, subject_frame
-    from frugalnerf_ns.scoring.next_view import DEFAULT_SCORE, SCORES
+    from frugalnerf_ns.scoring.next_view import SCORES
     from frugalnerf_ns.tools.next_view import Scorer
 
     pipeline, _, record, _ = suggested
+    assert record["layout"] == "ring" and record["score"] == "largest_gap"  # the measured default around a subject
     photos = pipeline.datamanager.train_dataset.cameras.camera_to_worlds.cpu()
     frame = subject_frame(photos, pipeline.datamanager.scene_layout.focus)
     photo_azimuths = frame.azimuths(photos[:, :3, 3])
     best = torch.tensor(record["suggestions"][0]["camera_to_world"])
     away = angle_difference(frame.azimuths(best[None, :3, 3]), photo_azimuths).abs().min()
-    assert float(away) >= 40.0  # the photos span 80 degrees; the other 280 are the gap
+    assert float(away) >= 130.0  # the photos span 80 degrees; the middle of the other 280 is 140 from the nearest
+    assert record["suggestions"][0]["signals"]["separation"] == pytest.approx(float(away) / 180.0, abs=1e-4)
+    # The render-based score too sends the photo into the gap, and a duplicate of a photo ranks last by it.
     scorer = Scorer(pipeline)
-    score = SCORES[DEFAULT_SCORE]
+    score = SCORES["unseen_or_single"]
     duplicate = score(scorer.render_signals(photos[1])[0].summary())  # the middle photo's own viewpoint
-    ring = [score(scorer.render_signals(pose)[0].summary()) for pose in candidate_poses(photos, False, frame).camera_to_worlds]
+    poses = candidate_poses(photos, False, frame).camera_to_worlds
+    ring = [score(scorer.render_signals(pose)[0].summary()) for pose in poses]
     # Last: the ring's candidate at the photo's own azimuth is the same viewpoint up to rounding (~0.001 apart).
     assert duplicate <= min(ring) + 0.005 and duplicate < 0.5 * sorted(ring)[len(ring) // 2]
-    assert record["suggestions"][0]["score"] == pytest.approx(max(ring), abs=1e-6)
+    top = poses[max(range(len(ring)), key=ring.__getitem__)]
+    assert float(angle_difference(frame.azimuths(top[None, :3, 3]), photo_azimuths).abs().min()) >= 40.0
 
 
 def test_it_writes_the_json_the_camera_path_and_the_picture(suggested):

@@ -15,6 +15,7 @@ from frugalnerf_ns.geometry.viewpoints import (
     describe,
     largest_gap_pose,
     neighbour_gaps,
+    separations,
     subject_frame,
 )
 
@@ -121,3 +122,16 @@ def test_the_coverage_line_of_forward_facing_photos_states_the_baseline():
                             torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
     line = coverage_line(cameras, ["1", "2"], forward_facing=True)
     assert line.startswith("2 photos side by side") and "baseline 10% of the distance" in line
+
+
+def test_separation_is_the_angle_to_the_nearest_photo_around_a_subject_and_the_distance_beside_forward_photos():
+    cameras = ring([0.0, 60.0])
+    far = separations(ring([210.0, 30.0, 0.0]), cameras, forward_facing=False)
+    assert torch.allclose(far, torch.tensor([150.0 / 180.0, 30.0 / 180.0, 0.0], dtype=torch.float64), atol=1e-4)
+    positions = torch.tensor([[-0.2, 0.0, 0.0], [0.2, 0.0, 0.0]], dtype=torch.float64)
+    target = torch.tensor([0.0, 0.0, -4.0], dtype=torch.float64)
+    y_up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    photos = look_at_poses(positions, target, y_up)
+    queries = look_at_poses(torch.tensor([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [2.0, 0.0, 0.0]], dtype=torch.float64), target, y_up)
+    assert torch.allclose(separations(queries, photos, forward_facing=True),
+                          torch.tensor([0.5, 0.0, 1.0], dtype=torch.float64), atol=1e-6)

@@ -196,6 +196,24 @@ def candidate_poses(
     return Candidates(look_at_poses(positions, target, rotation[:, 1]).float(), "plane", target)
 
 
+def separations(
+    candidates: Float[Tensor, "n 3 4"], camera_to_worlds: Float[Tensor, "views 3 4"], forward_facing: bool,
+    frame: Optional[SubjectFrame] = None,
+) -> Float[Tensor, " n"]:
+    """How far each candidate stands from the nearest photo, in [0, 1]: around a subject the azimuth difference over
+    180 degrees (1: opposite every photo); beside forward-facing photos the distance over their widest baseline,
+    clipped at 1. The middle of the largest gap between the photos maximises it."""
+    c2w = camera_to_worlds.detach().cpu().double()
+    points = candidates.detach().cpu().double()[:, :3, 3]
+    if forward_facing:
+        centres = c2w[:, :3, 3]
+        baseline = max(float(torch.cdist(centres, centres).max()), 1e-9) if len(centres) > 1 else 1.0
+        return (torch.cdist(points, centres).min(dim=1).values / baseline).clamp(0.0, 1.0)
+    frame = frame or subject_frame(c2w)
+    differences = angle_difference(frame.azimuths(points)[:, None], frame.azimuths(c2w[:, :3, 3])[None])
+    return differences.abs().min(dim=1).values / 180.0
+
+
 def _photo_label(names: Sequence[str], index: int) -> str:
     return f"photo {index + 1} ({names[index]})"
 

@@ -36,6 +36,9 @@ class ViewSignals:
     beyond: float
     median_depth: float
     """Median distance to the surface the candidate sees (a viewpoint inside the subject sees one right away)."""
+    separation: float = 0.0
+    """How far the candidate stands from the nearest photo, in [0, 1]: around a subject the azimuth to the nearest
+    photo over 180 degrees; beside forward-facing photos the distance over their widest baseline (clipped)."""
 
     def as_dict(self) -> Dict[str, float]:
         return asdict(self)
@@ -101,10 +104,20 @@ SCORES: Dict[str, Callable[[ViewSignals], float]] = {
     "disagreement": lambda s: s.disagreement,
     "beyond": lambda s: s.beyond,
     "coverage_and_disagreement": lambda s: s.unseen + 0.5 * s.single + s.disagreement,
+    "largest_gap": lambda s: s.separation,
 }
 """Candidate scores (higher: the photo would teach more), compared in docs/notes/next-view.md."""
 
 DEFAULT_SCORE = "unseen_or_single"
+DEFAULT_SCORE_BY_LAYOUT = {"ring": "largest_gap", "plane": "unseen_or_single"}
+"""The measured choice (docs/notes/next-view.md): around a subject the middle of the largest gap between the photos
+trained as well as the render-based score or better (2 captures, one seed each), so it ranks by default there;
+beside forward-facing photos (one split measured) the render-based score picked the better frame."""
+
+
+def default_score(layout: str) -> str:
+    """The score candidates of a layout ("ring" or "plane") are ranked by unless one is asked for."""
+    return DEFAULT_SCORE_BY_LAYOUT.get(layout, DEFAULT_SCORE)
 SCORES_NEEDING_SCALES = {"disagreement", "coverage_and_disagreement"}
 """Scores that read the lower scales' depths (the candidates are then rendered at every scale, ~2x slower)."""
 BLOCKED_FRACTION = 0.25

@@ -24,7 +24,7 @@ import sys
 import textwrap
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple
 
@@ -187,11 +187,10 @@ def distinct_best(poses_best_first: Sequence[torch.Tensor], count: int, spacing_
 def rank_candidates(pipeline, count: int = 3, step_degrees: float = 10.0, score: Optional[str] = None,
                     scorer: Optional[Scorer] = None) -> Tuple[List[Suggestion], Dict[str, object]]:
     """The ``count`` best candidate viewpoints of a trained pipeline, best first, and facts about the ranking."""
-    from frugalnerf_ns.geometry.viewpoints import candidate_poses, describe, largest_gap_pose, subject_frame
-    from frugalnerf_ns.scoring.next_view import BLOCKED_FRACTION, DEFAULT_SCORE, SCORES, SCORES_NEEDING_SCALES
+    from frugalnerf_ns.geometry.viewpoints import candidate_poses, describe, largest_gap_pose, separations, subject_frame
+    from frugalnerf_ns.scoring.next_view import BLOCKED_FRACTION, SCORES, SCORES_NEEDING_SCALES, default_score
 
-    score = score or DEFAULT_SCORE
-    if score not in SCORES:
+    if score is not None and score not in SCORES:
         raise UserError(f"--score must be one of {', '.join(SCORES)} (got {score!r})")
     datamanager = pipeline.datamanager
     photos = datamanager.train_dataset.cameras.camera_to_worlds.cpu()
@@ -200,11 +199,13 @@ def rank_candidates(pipeline, count: int = 3, step_degrees: float = 10.0, score:
     frame = None if forward else subject_frame(photos, datamanager.scene_layout.focus)
     depth = datamanager.spiral_focus_depth() if forward else None
     candidates = candidate_poses(photos, forward, frame, step_degrees, look_at_depth=depth)
+    score = score or default_score(candidates.layout)
     scorer = scorer or Scorer(pipeline, scales=score in SCORES_NEEDING_SCALES)
     subject = candidates.subject.double()
+    apart = separations(candidates.camera_to_worlds, photos, forward, frame)
     scored, blocked = [], 0
-    for pose in candidates.camera_to_worlds:
-        signals = scorer.render_signals(pose)[0].summary()
+    for pose, separation in zip(candidates.camera_to_worlds, apart.tolist()):
+        signals = replace(scorer.render_signals(pose)[0].summary(), separation=separation)
         # A viewpoint inside the subject or behind a wall of the room sees a surface right in front of it.
         if signals.median_depth < BLOCKED_FRACTION * float((pose[:3, 3].double() - subject).norm()):
             blocked += 1
@@ -284,12 +285,12 @@ def suggest(config_path: Path, count: int = 3, step_degrees: float = 10.0, score
             viewer_copy: bool = True, pipeline=None, print_fn=print) -> Dict[str, object]:
     """Ranks and writes ``next_view.json``, the camera path and the picture into the run folder; returns the
     JSON written."""
-    from frugalnerf_ns.scoring.next_view import DEFAULT_SCORE, SCORES_NEEDING_SCALES
+    from frugalnerf_ns.scoring.next_view import SCORES_NEEDING_SCALES
 
     started = time.time()
     pipeline = pipeline or load_pipeline(config_path)
     folder = run_folder(config_path)
-    scorer = Scorer(pipeline, scales=(score or DEFAULT_SCORE) in SCORES_NEEDING_SCALES)
+    scorer = Scorer(pipeline, scales=score in SCORES_NEEDING_SCALES)
     suggestions, facts = rank_candidates(pipeline, count, step_degrees, score, scorer)
     rows = []
     for rank, suggestion in enumerate(suggestions, start=1):
@@ -332,7 +333,8 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     parser.add_argument("--load-config", type=Path, required=True, help="config.yml of a trained FrugalNeRF run")
     parser.add_argument("--count", type=int, default=3, help="suggestions to write (default 3)")
     parser.add_argument("--step-degrees", type=float, default=10.0, help="azimuth between candidates around a subject")
-    parser.add_argument("--score", default=None, help="candidate score (default: the measured best)")
+    parser.add_argument("--score", default=None, help="candidate score (default: largest_gap around a subject, "
+                        "unseen_or_single beside forward-facing photos: the measured choice)")
     parser.add_argument("--no-viewer-copy", action="store_true", help="do not copy the camera path into <data>/camera_paths/")
     args = parser.parse_args(argv)
     if args.count < 1:
