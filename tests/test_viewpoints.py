@@ -105,9 +105,9 @@ def test_the_coverage_line_judges_the_gaps_between_neighbouring_photos():
     wide = coverage_line(ring([0.0, 60.0, 120.0, 180.0]), ["1", "2", "3", "4"], forward_facing=False)
     assert "4 photos over 180 degrees" in wide and "60 degrees between neighbours" in wide
     assert "will be guessed" in wide and "helps most" in wide
-    assert "a photo between photos" in wide and "30 degrees" in wide  # the middle of a 60-degree gap between photos
+    assert "a photo between photos 4 and 1, 90 degrees left of photo 1" in wide  # the middle of the 180-degree gap
     open_side = coverage_line(ring([0.0, 14.0, 29.0, 150.0]), ["1", "2", "3", "4"], forward_facing=False)
-    assert "up to 121 degrees" in open_side and "a photo between photos 3 and 4" in open_side
+    assert "up to 121 degrees" in open_side and "far side from photos 4 and 1, 105 degrees right of photo 4" in open_side
     closed = coverage_line(ring([0.0, 20.0, 40.0, 60.0, 80.0, 100.0]), list("123456"), forward_facing=False)
     assert "good between them; the other side is guessed; a photo on the far side" in closed
     fair = coverage_line(ring([0.0, 40.0, 80.0]), ["1", "2", "3"], forward_facing=False)

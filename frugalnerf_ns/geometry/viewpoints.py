@@ -298,8 +298,8 @@ def coverage_line(
     """How the photos cover the subject, from the cameras alone, and where a photo would help most.
 
     Around a subject: the azimuth the photos span and the largest angle between neighbouring photos, judged
-    against ``WELL_COVERED_GAP`` and ``GUESSED_GAP``; the advice is the middle of the largest gap between the photos
-    when that is wider than ``WELL_COVERED_GAP``, else the middle of the open side. Forward-facing: the photos see the scene from the front only,
+    against ``WELL_COVERED_GAP`` and ``GUESSED_GAP``; the advice is the middle of the largest gap (the open side where
+    the photos stand on one side of the subject), as ``frugalnerf-next-view`` ranks by default. Forward-facing: the photos see the scene from the front only,
     and their baseline against the distance to what they look at."""
     c2w = camera_to_worlds.detach().cpu().double()
     count = len(c2w)
@@ -322,8 +322,9 @@ def coverage_line(
     inner = sorted(g for g, _, _ in gaps)[:-1]  # the gaps between photos, without the open side
     span = 360.0 - largest
     between = max(inner) if inner else 0.0
-    # Photos far apart: fill the largest gap between them; photos close together: the open side.
-    pose, _ = largest_gap_pose(c2w, frame, rank=1 if between > WELL_COVERED_GAP else 0)
+    # The largest gap, also when it is the open side: on our captures a photo there trained as well as or better than
+    # the render-based suggestion and random frames (docs/notes/next-view.md); frugalnerf-next-view ranks the same way.
+    pose, _ = largest_gap_pose(c2w, frame)
     where = describe(pose, c2w, names, False, frame)
     spread = f"{count} photos over {span:.0f} degrees around the subject"
     if count > 2:
