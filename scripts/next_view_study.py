@@ -42,15 +42,21 @@ STARTS = {
 
 
 def frame_azimuths(scene: str) -> torch.Tensor:
-    """Each frame's azimuth (degrees) around the focus of all the capture's cameras, about their mean up."""
+    """Each frame's azimuth (degrees) around the focus of all the capture's cameras (least squares with the default
+    ridge), about their mean up, 0 at the first frame: the frame the plan was made in (kept here as it was, so the
+    committed plan and table reproduce)."""
     from frugalnerf_ns.data.dataparsers.llff import load_poses_bounds
     from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
-    from frugalnerf_ns.geometry.viewpoints import subject_frame
+    from frugalnerf_ns.geometry.scene_analysis import focus_point
+    from frugalnerf_ns.geometry.viewpoints import SubjectFrame
 
     poses, _ = load_poses_bounds(DATA / scene / "poses_bounds.npy")
-    c2w = torch.from_numpy(llff_to_opengl(poses[:, :, :4]))
-    frame = subject_frame(c2w)
-    return frame.azimuths(c2w[:, :3, 3])
+    c2w = torch.from_numpy(llff_to_opengl(poses[:, :, :4])).double()
+    focus = focus_point(c2w)
+    up = torch.nn.functional.normalize(c2w[:, :3, 1].mean(0), dim=0)
+    first = c2w[0, :3, 3] - focus
+    first = first - (first @ up) * up
+    return SubjectFrame(focus, up, first / first.norm()).azimuths(c2w[:, :3, 3])
 
 
 def angular(a: float, b: float) -> float:
@@ -193,10 +199,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("command", choices=["plan", "run", "table"])
     parser.add_argument("--iterations", type=int, default=750)
+    parser.add_argument("--force", action="store_true", help="plan: overwrite the existing plan")
     parser.add_argument("--only", nargs="*", default=None, help="split names to run, in this order")
     parser.add_argument("--tool-root", type=Path, default=ROOT, help="source tree whose frugalnerf-next-view suggests")
     args = parser.parse_args()
     if args.command == "plan":
+        if PLAN.is_file() and not args.force:
+            sys.exit(f"{PLAN} exists: the plan is fixed before any training (--force writes a new one)")
         PLAN.parent.mkdir(parents=True, exist_ok=True)
         PLAN.write_text(json.dumps(plan(), indent=1) + "\n")
         print(PLAN.read_text())
