@@ -206,8 +206,10 @@ def rank_candidates(pipeline, count: int = 3, step_degrees: float = 10.0, score:
     scored, blocked = [], 0
     for pose, separation in zip(candidates.camera_to_worlds, apart.tolist()):
         signals = replace(scorer.render_signals(pose)[0].summary(), separation=separation)
-        # A viewpoint inside the subject or behind a wall of the room sees a surface right in front of it.
-        if signals.median_depth < BLOCKED_FRACTION * float((pose[:3, 3].double() - subject).norm()):
+        # A viewpoint inside the subject or behind a wall of the room sees a surface right in front of it: its render
+        # says nothing about the scene. The geometric score reads no render: the model's density where no photo
+        # looked (the far side of a subject) is a guess, and would hide the very viewpoints that score highest.
+        if score != "largest_gap" and signals.median_depth < BLOCKED_FRACTION * float((pose[:3, 3].double() - subject).norm()):
             blocked += 1
             continue
         scored.append((SCORES[score](signals), pose, signals))
