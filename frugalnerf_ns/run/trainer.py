@@ -54,7 +54,7 @@ class FrugalTrainerConfig(TrainerConfig):
     started from scratch; a resumed run keeps the one stored in its checkpoint."""
     suggest_next_view: bool = True
     """At the end of a training on photos without cameras or a capture around a subject (a room beyond the box),
-    rank where the next photo would help most (``frugalnerf-next-view``, ~30 s on 2 cores) and print one line."""
+    rank where the next photo would help most (``frugalnerf-next-view``, 10-20 s on 2 cores) and print one line."""
 
     def set_timestamp(self) -> None:
         """nerfstudio's timestamp (to the second), made unique: the run folder is claimed here, before ns-train

@@ -78,14 +78,11 @@ class Scorer:
     """Renders candidates of one trained pipeline and turns the renders into signals."""
 
     def __init__(self, pipeline, side: int = SCORE_SIDE, scales: bool = False) -> None:
-        from frugalnerf_ns.data.novel_cameras import cameras_at
-
         self.model = pipeline.model
         self.datamanager = pipeline.datamanager
         self.side = side
         self.scales = scales  # render the lower scales too (the depth-disagreement signal needs them)
         self.photos = small_cameras(self.datamanager.train_dataset.cameras, side)
-        self.cameras_at = cameras_at
         self.has_room = bool(getattr(self.model, "has_room", False))
         self.photo_c2w, self.photo_k, self.photo_depths = [], [], []
         for index in range(len(self.photos)):
@@ -99,11 +96,12 @@ class Scorer:
     def render_signals(self, camera_to_world: torch.Tensor, side: Optional[int] = None, scales: Optional[bool] = None):
         """(per-pixel signals, render) of a viewpoint, with the photos' intrinsics at ``side`` (default: the
         scoring size), every scale rendered with ``scales`` (default: the scorer's choice)."""
+        from frugalnerf_ns.data.novel_cameras import cameras_at
         from frugalnerf_ns.model.rendering import scale_suffix
         from frugalnerf_ns.scoring.next_view import pixel_signals
 
         intrinsics = self.photos if side is None else small_cameras(self.datamanager.train_dataset.cameras, side)
-        camera = self.cameras_at(camera_to_world[None].float(), intrinsics[0:1])
+        camera = cameras_at(camera_to_world[None].float(), intrinsics[0:1])
         out = _render(self.model, camera, self.scales if scales is None else scales)
         depths = [out["depth"].reshape(-1)]
         scale = 1
