@@ -164,12 +164,16 @@ def table(study: Dict, tag: str) -> None:
     lines = ["| split | photos (azimuth) | rule | next frame (azimuth) | test PSNR / SSIM / LPIPS | train min |",
              "|---|---|---|---|---|---|"]
     gains = {"random": [], "gap": []}
+    by_score: Dict[str, Dict[str, List[float]]] = {}  # the scores the splits were first suggested with
     for name, split in study["splits"].items():
         key = f"{tag}/{name}"
         if key not in suggestions:
             continue
         azimuths = frame_azimuths(split["scene"])
-        picks = {"suggestion": suggestions[key]["snapped"][0]["frame"], **split["picks"]}
+        suggestion = suggestions[key]
+        picks = {"suggestion": suggestion["snapped"][0]["frame"], **split["picks"]}
+        if "earlier" in suggestion:  # the score the tool defaulted to before: its pick, kept for the record
+            picks["earlier suggestion"] = suggestion["earlier"]["snapped"][0]["frame"]
         runs = {"k photos": RUNS / tag / name / "k"} | {rule: RUNS / tag / name / f"frame{f}" for rule, f in picks.items()}
         scores = {rule: json.loads((run / "scores.json").read_text()) for rule, run in runs.items()
                   if (run / "scores.json").is_file()}
@@ -177,7 +181,9 @@ def table(study: Dict, tag: str) -> None:
         for rule, score in scores.items():
             frame = picks.get(rule)
             where = "-" if frame is None else f"{frame} ({float(azimuths[frame]):.0f})"
-            lines.append(f"| {name} | {photos} | {rule} | {where} | {score['psnr']:.2f} / {score['ssim']:.3f} / "
+            label = {"suggestion": f"suggestion ({suggestion['score']})",
+                     "earlier suggestion": f"suggestion ({suggestion.get('earlier', {}).get('score')})"}.get(rule, rule)
+            lines.append(f"| {name} | {photos} | {label} | {where} | {score['psnr']:.2f} / {score['ssim']:.3f} / "
                          f"{score['lpips']:.3f} | {score['train_minutes']:.1f} |")
         record["splits"][name] = {"scene": split["scene"], "photos": split["photos"], "test": split["test"],
                                   "picks": picks, "suggestion": suggestions[key],
@@ -187,12 +193,21 @@ def table(study: Dict, tag: str) -> None:
             random_psnr = (scores["random1"]["psnr"] + scores["random2"]["psnr"]) / 2.0
             gains["random"].append(scores["suggestion"]["psnr"] - random_psnr)
             gains["gap"].append(scores["suggestion"]["psnr"] - scores["gap"]["psnr"])
+            first = "earlier suggestion" if "earlier suggestion" in scores else "suggestion"
+            first_score = suggestion.get("earlier", suggestion)["score"]
+            by_score.setdefault(first_score, {"random": [], "gap": []})
+            by_score[first_score]["random"].append(scores[first]["psnr"] - random_psnr)
+            by_score[first_score]["gap"].append(scores[first]["psnr"] - scores["gap"]["psnr"])
     record["mean_gain_db"] = {rule: (sum(v) / len(v) if v else None) for rule, v in gains.items()}
     record["complete_splits"] = len(gains["gap"])
+    record["first_suggested_with"] = {score: {rule: sum(v) / len(v) for rule, v in g.items()} | {"splits": len(g["gap"])}
+                                      for score, g in by_score.items()}
     RECORD.write_text(json.dumps(record, indent=1) + "\n")
     print("\n".join(lines))
     print(f"\nover {len(gains['gap'])} complete splits: suggestion - random (mean of 2 draws) "
           f"{record['mean_gain_db']['random']} dB, suggestion - largest gap {record['mean_gain_db']['gap']} dB")
+    for score, g in record["first_suggested_with"].items():
+        print(f"first suggested with {score} ({g['splits']} splits): - random {g['random']:.2f} dB, - gap {g['gap']:.2f} dB")
 
 
 def main() -> None:
@@ -201,6 +216,8 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=750)
     parser.add_argument("--force", action="store_true", help="plan: overwrite the existing plan")
     parser.add_argument("--only", nargs="*", default=None, help="split names to run, in this order")
+    parser.add_argument("--resuggest", action="store_true",
+                        help="run: ask the tool again on splits suggested with a score that is no longer its default")
     parser.add_argument("--tool-root", type=Path, default=ROOT, help="source tree whose frugalnerf-next-view suggests")
     args = parser.parse_args()
     if args.command == "plan":
@@ -224,6 +241,14 @@ def main() -> None:
             if key not in suggestions:
                 suggestions[key] = suggest(base, split, args.tool_root)
                 SUGGESTIONS.write_text(json.dumps(suggestions, indent=1) + "\n")
+            elif args.resuggest:
+                # The tool's default score changed after this split's suggestion was recorded: ask again, keep the
+                # earlier suggestion (and its run) beside it in the record.
+                current = suggest(base, split, args.tool_root)
+                if current["score"] != suggestions[key]["score"]:
+                    earlier = {k: v for k, v in suggestions[key].items() if k != "earlier"}
+                    suggestions[key] = {**current, "earlier": earlier}
+                    SUGGESTIONS.write_text(json.dumps(suggestions, indent=1) + "\n")
             picks = {"suggestion": suggestions[key]["snapped"][0]["frame"], **split["picks"]}
             for rule, frame in picks.items():
                 train(f"{tag}/{name}/frame{frame}", split["scene"], split["photos"] + [frame], split["test"], args.iterations)

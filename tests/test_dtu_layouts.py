@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from frugalnerf_ns.data.dataparsers.auto import detect_layout
+from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_layout
 from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig, fit_to_images
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.sparse_points import TriangulationOptions, triangulate_training_views
@@ -110,3 +110,50 @@ def test_cameras_that_fit_no_reading_of_their_images_stop_with_one_line():
     # The frame's width given: a crop of a frame no table knows.
     fit = fit_to_images(intrinsics(960.0, 540.0), 540, 540, 1920, Path("c.npz"))
     assert fit.crop_x == pytest.approx(420.0) and fit.scale == pytest.approx(0.5)
+
+
+def neus_copy(folder: Path, poses_bounds: bool, masks: bool = True) -> Path:
+    """scan65 as NeuS's forks distribute DTU: ``images/000000.png``, masks ``mask/000.png``, ``cameras_sphere.npz``;
+    with ``poses_bounds`` an LLFF file beside them (any N x 17 rows: the forks write one for LLFF loaders)."""
+    folder.mkdir(parents=True)
+    shutil.copy(SCAN65 / "cameras_sphere.npz", folder / "cameras_sphere.npz")
+    shutil.copytree(SCAN65 / "image", folder / "images")
+    if masks:
+        (folder / "mask").mkdir()
+        for path in sorted((SCAN65 / "mask").glob("*.png")):
+            shutil.copy(path, folder / "mask" / f"{int(path.stem):03d}.png")
+    if poses_bounds:
+        rows = np.zeros((49, 17))
+        rows[:, :15] = np.concatenate([np.eye(3), np.zeros((3, 1)), [[300.0], [400.0], [350.0]]], 1).reshape(-1)
+        rows[:, 15:] = [1.0, 10.0]
+        np.save(folder / "poses_bounds.npy", rows)
+    return folder
+
+
+@needs_dtu
+def test_neus_layout_with_images_and_three_digit_masks_reads_as_the_published_scene(tmp_path, capsys):
+    folder = neus_copy(tmp_path / "dtu_scan65", poses_bounds=True)
+    assert detect_layout(folder)[0] == "DTU/IDR"  # cameras npz + masks: DTU, though poses_bounds.npy sits beside
+    auto = AutoDataParserConfig(data=folder).setup()
+    train = auto.get_dataparser_outputs("train")
+    assert "its cameras npz and mask/ make it DTU" in capsys.readouterr().out
+    published = DTUDataParserConfig(data=SCAN65).setup()
+    assert torch.equal(train.cameras.camera_to_worlds, published.get_dataparser_outputs("train").cameras.camera_to_worlds)
+    test, published_test = auto.get_dataparser_outputs("test"), published.get_dataparser_outputs("test")
+    assert [p.name for p in test.image_filenames] == [p.name for p in published_test.image_filenames]
+    # The pixelNeRF protocol's masks, each the one of its own image (000000.png pairs with 000.png).
+    masks = test.metadata["eval_mask_filenames"]
+    assert [int(m.stem) for m in masks] == [int(p.stem) for p in test.image_filenames]
+    assert len(test.metadata["test_subsets"]["regnerf25"]) == 25
+
+
+@needs_dtu
+def test_cameras_npz_and_poses_bounds_without_masks_stay_llff(tmp_path):
+    folder = neus_copy(tmp_path / "x", poses_bounds=True, masks=False)
+    assert detect_layout(folder)[0] == "LLFF"
+
+
+def test_a_dtu_folder_with_neither_image_folder_names_both(tmp_path):
+    np.savez(tmp_path / "cameras.npz", world_mat_0=np.eye(4))
+    with pytest.raises(DataError, match=r"neither image/ nor images/ nor MonoSDF"):
+        DTUDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")

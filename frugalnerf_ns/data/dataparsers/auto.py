@@ -12,7 +12,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from frugalnerf_ns.data.input_checks import IMAGE_SUFFIXES, DataError
 from frugalnerf_ns.data.dataparsers.blender import SPLIT_FILES, BlenderDataParserConfig, is_blender_layout
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig
-from frugalnerf_ns.data.dataparsers.dtu import CAMERA_FILES, MONOSDF_SUFFIX, DTUDataParserConfig
+from frugalnerf_ns.data.dataparsers.dtu import CAMERA_FILES, MONOSDF_SUFFIX, DTUDataParserConfig, is_dtu_layout
 from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
     FewShotColmapDataParserConfig,
@@ -34,10 +34,10 @@ LAYOUTS: List[Tuple[str, str, Callable[[Path], bool], Type[DataParserConfig]]] =
      FewShotNerfstudioDataParserConfig),
     ("Blender (NeRF-synthetic)", f"{SPLIT_FILES['train']} and {SPLIT_FILES['test']}", is_blender_layout,
      BlenderDataParserConfig),
+    # Before LLFF: NeuS's forks keep a poses_bounds.npy beside DTU's cameras and masks (``is_dtu_layout``).
+    ("DTU/IDR", f"{' or '.join(CAMERA_FILES)} with image/ or images/ (or MonoSDF's *{MONOSDF_SUFFIX})",
+     is_dtu_layout, DTUDataParserConfig),
     ("LLFF", "poses_bounds.npy", lambda d: (d / "poses_bounds.npy").is_file(), LLFFDataParserConfig),
-    ("DTU/IDR", f"{' or '.join(CAMERA_FILES)} with image/ (or MonoSDF's *{MONOSDF_SUFFIX})",
-     lambda d: ((d / "image").is_dir() or any(d.glob(f"*{MONOSDF_SUFFIX}")))
-     and any((d / f).is_file() for f in CAMERA_FILES), DTUDataParserConfig),
     ("RealEstate-10K", f"{' and '.join(REALESTATE_FILES)} with rgb/", lambda d: (d / "rgb").is_dir()
      and all((d / f).is_file() for f in REALESTATE_FILES), RealEstateDataParserConfig),
     ("COLMAP", "sparse/0/images.bin (or colmap/sparse/0)", _is_colmap, FewShotColmapDataParserConfig),
@@ -99,11 +99,19 @@ def layout_config(config: AutoDataParserConfig) -> Tuple[str, DataParserConfig]:
     return name, target
 
 
+def layout_note(name: str, data: Path) -> str:
+    """Why a folder that another layout would also read was read as ``name`` (empty when nothing else fits)."""
+    if name == "DTU/IDR" and (data / "poses_bounds.npy").is_file():
+        return (": its cameras npz and mask/ make it DTU (its poses_bounds.npy is not read; `frugal-llff` reads the "
+                "folder as LLFF, without masks)")
+    return ""
+
+
 class AutoDataParser(DataParser):
     config: AutoDataParserConfig
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         name, target = layout_config(self.config)
         if split == "train":
-            CONSOLE.print(f"frugalnerf: {self.config.data} is {name} data ({type(target).__name__})")
+            CONSOLE.print(f"frugalnerf: {self.config.data} is {name} data ({type(target).__name__}){layout_note(name, Path(self.config.data))}")
         return target.setup()._generate_dataparser_outputs(split, **kwargs)

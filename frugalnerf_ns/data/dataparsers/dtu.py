@@ -1,4 +1,5 @@
-"""DTU in the IDR/NeuS layout: ``cameras_sphere.npz`` (or ``cameras.npz``), ``image/``, ``mask/``; and in
+"""DTU in the IDR/NeuS layout: ``cameras_sphere.npz`` (or ``cameras.npz``), ``image/`` (or ``images/``), ``mask/``
+(``000.png`` or ``000000.png``: masks pair with images in filename order); and in
 MonoSDF's (``000000_rgb.png`` ... beside ``cameras.npz``: centre crops of the frames the cameras describe).
 
 ``world_mat_i`` = K [R | t] projects world points to pixels of the FULL-resolution capture, OpenCV axes;
@@ -61,7 +62,7 @@ class DTU(DataParser):
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         data = Path(self.config.data)
-        camera_file = next((data / name for name in CAMERA_FILES if (data / name).is_file()), None)
+        camera_file = camera_file_of(data)
         if camera_file is None:
             raise DataError(f"{data} has none of {', '.join(CAMERA_FILES)} (DTU/IDR layout)")
         images = scene_images(data)
@@ -133,13 +134,37 @@ class DTU(DataParser):
         )
 
 
+IMAGE_FOLDERS = ("image", "images")
+"""Where IDR/NeuS keep the frames (``image/``; NeuS's forks and copies often ``images/``)."""
+
+
 def scene_images(data: Path) -> List[Path]:
-    """``image/`` (IDR/NeuS), else MonoSDF's ``*_rgb.png`` in the scene folder, in filename order."""
-    if not (data / "image").is_dir():
+    """``image/`` or ``images/`` (IDR/NeuS and its forks), else MonoSDF's ``*_rgb.png`` in the scene folder, in
+    filename order."""
+    folder = next((data / name for name in IMAGE_FOLDERS if (data / name).is_dir()), None)
+    if folder is None:
         monosdf = sorted(p for p in data.glob(f"*{MONOSDF_SUFFIX}") if p.is_file())
         if monosdf:
             return monosdf
-    return list_images(data / "image")
+        raise DataError(f"{data} has neither {' nor '.join(f'{n}/' for n in IMAGE_FOLDERS)} nor MonoSDF's "
+                        f"*{MONOSDF_SUFFIX} images beside its cameras (DTU/IDR layout)")
+    return list_images(folder)
+
+
+def camera_file_of(data: Path) -> Optional[Path]:
+    """The scene's IDR/NeuS camera file (the first of ``CAMERA_FILES`` present), or None."""
+    return next((data / name for name in CAMERA_FILES if (data / name).is_file()), None)
+
+
+def is_dtu_layout(data: Path) -> bool:
+    """IDR/NeuS cameras beside its images (``image/``, ``images/`` or MonoSDF's). A folder that also holds a
+    ``poses_bounds.npy`` (NeuS's forks keep LLFF's file beside DTU's) is DTU only with object masks (``mask/``):
+    cameras npz and masks are what LLFF lacks and DTU's protocol needs."""
+    if camera_file_of(data) is None:
+        return False
+    if not (any((data / name).is_dir() for name in IMAGE_FOLDERS) or any(data.glob(f"*{MONOSDF_SUFFIX}"))):
+        return False
+    return not (data / "poses_bounds.npy").is_file() or (data / "mask").is_dir()
 
 
 def infer_intrinsics_width(K: np.ndarray, image_width: int) -> float:
