@@ -196,3 +196,66 @@ def write_colmap_photos(root: Path, count: int = 10, scale: int = 32) -> List[Tu
     pixels = write_colmap(root, count, scale)
     factor = math.ceil(WIDTH * scale / 640)
     return [(u / factor, v / factor) for u, v in pixels]
+
+
+def write_instant_ngp(root: Path, count: int = 10, k1: float = -0.05) -> List[Tuple[float, float]]:
+    """A real capture as instant-ngp's colmap2nerf.py writes it: ``transforms_train.json`` and
+    ``transforms_test.json`` (each listing every frame) with one camera (fl_x, fl_y, an off-centre cx, cy, w, h and
+    OpenCV distortion), RGB frames with their suffix in ``file_path``. The pixels are the pinhole projections: where
+    the point lies in the undistorted frames."""
+    frames, pixels = [], []
+    K = None
+    for i, (K, w2c) in enumerate(opencv_cameras(count, forward_facing=False)):
+        frames.append({"file_path": f"./images/frame_{i:05d}.png", "sharpness": 50.0,
+                       "transform_matrix": opengl_c2w(w2c).tolist()})
+        pixels.append(project(K, w2c))
+    meta = {"camera_angle_x": 2 * math.atan(WIDTH / (2 * K[0, 0])), "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2],
+            "cy": K[1, 2], "w": WIDTH, "h": HEIGHT, "k1": k1, "k2": 0.0, "p1": 0.0, "p2": 0.0, "aabb_scale": 16,
+            "frames": frames}
+    root.mkdir(parents=True, exist_ok=True)
+    for split in ("train", "test"):
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=1))
+    write_images(root / "images", [f"frame_{i:05d}.png" for i in range(count)])
+    return pixels
+
+
+def llff_capture_as_instant_ngp(scene: Path, root: Path, train: List[int], test: List[int]) -> Path:
+    """An LLFF capture with full-size ``images/`` (the shared bird) written as instant-ngp writes a COLMAP capture:
+    OpenGL camera-to-worlds in a world turned so the cameras' mean up is +z, moved so the point they look at is the
+    origin and scaled so they stand 4 units from it on average; the file's focal length and principal point; the
+    JPEG frames (no alpha) copied. ``transforms_train.json`` lists the ``train`` frames, ``transforms_test.json``
+    the ``test`` ones."""
+    import torch
+
+    from frugalnerf_ns.data.dataparsers.llff import load_poses_bounds
+    from frugalnerf_ns.geometry.camera_conventions import llff_to_opengl
+    from frugalnerf_ns.geometry.scene_analysis import focus_point
+
+    poses, _ = load_poses_bounds(scene / "poses_bounds.npy")
+    c2w = llff_to_opengl(poses[:, :, :4])
+    height, width, focal = poses[0, :, 4]
+    up = c2w[:, :3, 1].mean(0)
+    up /= np.linalg.norm(up)
+    axis, angle = np.cross(up, [0.0, 0.0, 1.0]), math.acos(float(np.clip(up[2], -1.0, 1.0)))
+    axis = axis / (np.linalg.norm(axis) or 1.0)
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    turn = np.eye(3) + math.sin(angle) * cross + (1 - math.cos(angle)) * cross @ cross  # Rodrigues: up -> +z
+    focus = focus_point(torch.from_numpy(c2w)).numpy()
+    centres = (c2w[:, :3, 3] - focus) @ turn.T
+    scale = 4.0 / np.linalg.norm(centres, axis=-1).mean()
+    images = sorted((scene / "images").iterdir())
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "images").mkdir(exist_ok=True)
+    for split, views in (("train", train), ("test", test)):
+        frames = []
+        for i in views:
+            pose = np.eye(4)
+            pose[:3, :3] = turn @ c2w[i, :3, :3]
+            pose[:3, 3] = centres[i] * scale
+            shutil.copy(images[i], root / "images" / images[i].name)
+            frames.append({"file_path": f"./images/{images[i].name}", "sharpness": 100.0, "transform_matrix": pose.tolist()})
+        meta = {"camera_angle_x": 2 * math.atan(width / (2 * focal)), "camera_angle_y": 2 * math.atan(height / (2 * focal)),
+                "fl_x": focal, "fl_y": focal, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "cx": width / 2, "cy": height / 2,
+                "w": width, "h": height, "aabb_scale": 16, "frames": frames}
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=1))
+    return root

@@ -14,6 +14,7 @@ from PIL import Image
 
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig, detect_layout
+from frugalnerf_ns.data.dataparsers.blender import BlenderDataParserConfig
 from frugalnerf_ns.data.dataparsers.dtu import DTUDataParserConfig
 from frugalnerf_ns.data.dataparsers.llff import LLFFDataParserConfig
 from frugalnerf_ns.data.dataparsers.nerfstudio_format import (
@@ -35,6 +36,8 @@ LAYOUTS = {
     "colmap photos only": (fx.write_colmap_photos, lambda d: FewShotColmapDataParserConfig(
         data=d, colmap_path=Path("sparse/0"), train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "nerfstudio": (fx.write_nerfstudio, lambda d: FewShotNerfstudioDataParserConfig(
+        data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
+    "instant-ngp capture": (fx.write_instant_ngp, lambda d: BlenderDataParserConfig(
         data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
 }
 

@@ -32,7 +32,7 @@ def _is_colmap(data: Path) -> bool:
 LAYOUTS: List[Tuple[str, str, Callable[[Path], bool], Type[DataParserConfig]]] = [
     ("nerfstudio", "transforms.json", lambda d: d.suffix == ".json" or (d / "transforms.json").is_file(),
      FewShotNerfstudioDataParserConfig),
-    ("Blender (NeRF-synthetic)", f"{SPLIT_FILES['train']} and {SPLIT_FILES['test']}", is_blender_layout,
+    ("NeRF-synthetic files (Blender or a capture)", f"{SPLIT_FILES['train']} and {SPLIT_FILES['test']}", is_blender_layout,
      BlenderDataParserConfig),
     # Before LLFF: NeuS's forks keep a poses_bounds.npy beside DTU's cameras and masks (``is_dtu_layout``).
     ("DTU/IDR", f"{' or '.join(CAMERA_FILES)} with image/ or images/ (or MonoSDF's *{MONOSDF_SUFFIX})",

@@ -33,7 +33,14 @@ from PIL import Image
 from frugalnerf_ns.data.downscaled_images import downscaled_all
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images
+from frugalnerf_ns.data.dataparsers.transforms_capture import (
+    capture_outputs,
+    capture_reasons,
+    file_camera,
+    per_frame_intrinsics,
+)
 from frugalnerf_ns.data.splits import check_indices, dietnerf_train_views, load_split_table
+from frugalnerf_ns.geometry.scene_analysis import FOCUS_BOX_SCALE
 
 SPLIT_FILES = {"train": "transforms_train.json", "val": "transforms_val.json", "test": "transforms_test.json"}
 PROTOCOL_WIDTH = 400
@@ -58,6 +65,15 @@ class BlenderDataParserConfig(FewShotDataParserConfig):
     """Farthest distance from a camera to the object (Blender convention)."""
     scene_radius: float = 1.5
     """Half-size of the modelled box around the origin (TensoRF's and nerfstudio's box for these scenes)."""
+    capture: Optional[bool] = None
+    """Read the scene as a real capture (instant-ngp's and TensoRF's custom-data files): the file's intrinsics and
+    distortion, a box around the cameras' focus with the space beyond it, no white background. Default: a capture
+    when its frames have no alpha, the file states fl_x / cx / distortion, or a camera stands off NeRF-synthetic's
+    4-unit sphere; False reads it as NeRF-synthetic."""
+    ndc: Optional[bool] = None
+    """A capture only: model it in NDC (default: when its training cameras are forward-facing, as LLFF)."""
+    focus_box_scale: float = FOCUS_BOX_SCALE
+    """A capture only: half the side of the box around the training cameras' focus, in farthest-camera distances."""
 
 
 class Blender(DataParser):
@@ -71,6 +87,10 @@ class Blender(DataParser):
         indices = self._indices(source, len(frames), table)
         files = [frame_image(data, frames[i], data / SPLIT_FILES[source], i) for i in indices]
         check_images(files)
+        capture = self._capture(data, table)
+        if capture is not None:
+            say = CONSOLE.print if split == "train" else (lambda _: None)
+            return capture_outputs(self.config, data, split, *capture, say)
         with Image.open(files[0]) as img:
             full_width, full_height = img.size
         factor = self.config.downscale_factor or max(1, full_width // PROTOCOL_WIDTH)
@@ -94,7 +114,8 @@ class Blender(DataParser):
         if split == "train":
             CONSOLE.print(
                 f"frugalnerf: Blender scene, {len(indices)} training views {indices} of {len(frames)} in "
-                f"{SPLIT_FILES['train']}, {width}x{height} (downscale {factor})"
+                f"{SPLIT_FILES['train']}, {width}x{height} (downscale {factor}); {self._synthetic_why}"
+                + ("" if self.config.capture is False else " (--capture True reads it as a real capture)")
             )
         return DataparserOutputs(
             image_filenames=files,
@@ -102,6 +123,44 @@ class Blender(DataParser):
             scene_box=SceneBox(aabb=torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)),
             metadata={"near_far": (self.config.near, self.config.far)},
         )
+
+    def _capture(self, data: Path, table: Dict):
+        """(train frames and poses, test frames and poses, the file's camera, why) when the scene is a real
+        capture (``capture_reasons``, or --capture True), else None."""
+        path = data / SPLIT_FILES["train"]
+        meta, frames = read_transforms(path)
+        centres = np.stack([pose_of(frame, path, i)[:3, 3] for i, frame in enumerate(frames)])
+        first = frame_image(data, frames[0], path, 0)
+        check_images([first])
+        reasons = capture_reasons(meta, first, centres, self.config.scene_radius, self.config.far)
+        wanted = self.config.capture if self.config.capture is not None else bool(reasons)
+        if not wanted:
+            distance = np.linalg.norm(centres, axis=-1)
+            self._synthetic_why = (
+                "NeRF-synthetic: RGBA frames, camera_angle_x only, cameras "
+                f"{distance.min():.2f}-{distance.max():.2f} from the origin" if not reasons else
+                f"read as NeRF-synthetic (--capture False) though {'; '.join(reasons)}")
+            return None
+        reasons = reasons or ["--capture True"]
+        splits, metas = {}, {}
+        for source in ("train", "test"):
+            path = data / SPLIT_FILES[source]
+            meta, frames = read_transforms(path)
+            indices = self._indices(source, len(frames), table)
+            files = [frame_image(data, frames[i], path, i) for i in indices]
+            check_images(files)
+            poses = np.stack([pose_of(frames[i], path, i) for i in indices])
+            splits[source], metas[source] = (files, poses), (meta, frames, path)
+        with Image.open(splits["train"][0][0]) as img:
+            size = img.size
+        cameras = []
+        for meta, frames, path in metas.values():
+            per_frame_intrinsics(frames, path)
+            cameras.append(file_camera(meta, size, path))
+        if cameras[0] != cameras[1]:
+            raise DataError(f"{data}: {SPLIT_FILES['train']} and {SPLIT_FILES['test']} state different cameras "
+                            f"({cameras[0]} / {cameras[1]}); one camera is read for both")
+        return splits["train"], splits["test"], cameras[0], reasons
 
     def _indices(self, source: str, num_frames: int, table: Dict) -> List[int]:
         what = str(Path(self.config.data) / SPLIT_FILES[source])
