@@ -50,7 +50,7 @@ def test_the_start_up_summary_names_each_decision_and_its_override(procedural_sc
     assert detected.startswith("frugalnerf scene: object (detected") and "--pipeline.model.auto-grid sizes it" in detected
     assert "space: bounded box" in detected
     # The photos' coverage, from the cameras: the procedural scene's 3 photos stand 40 degrees apart on an arc.
-    photos = detected.splitlines()[-1]
+    photos = next(line for line in detected.splitlines() if line.startswith("  photos:"))
     assert photos.startswith("  photos: 3 photos over 80 degrees around the subject, up to 40 degrees between neighbours: fair")
     # An LLFF-layout split modelled in NDC (the layout's space) is called forward-facing only when it is one.
     ndc = {"focal": 100.0, "width": 64.0, "height": 48.0, "near": 1.0}

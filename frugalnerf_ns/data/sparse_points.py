@@ -344,6 +344,15 @@ def match_pairs(
     return matches
 
 
+def training_view_matches(
+    images: Sequence[np.ndarray], camera_to_worlds: Float[Tensor, "views 3 4"], options: TriangulationOptions,
+    progress: bool = True,
+) -> Tuple[List[Tensor], Dict[Tuple[int, int], np.ndarray]]:
+    """(keypoints per view, matches per pair of nearby views): SIFT and matching."""
+    keypoints, descriptors = extract_sift(images, options.max_features, progress, options.sift_upsample)
+    return keypoints, match_pairs(descriptors, neighbour_pairs(camera_to_worlds, options.match_neighbors), progress)
+
+
 def triangulate_training_views(
     images: Sequence[np.ndarray],
     camera_to_worlds: Float[Tensor, "views 3 4"],
@@ -351,12 +360,12 @@ def triangulate_training_views(
     options: Optional[TriangulationOptions] = None,
     depth_bounds: Optional[Tuple[float, float]] = None,
     progress: bool = True,
+    found: Optional[Tuple[List[Tensor], Dict[Tuple[int, int], np.ndarray]]] = None,
 ) -> SparseDepth:
     """Sparse points of the training views: SIFT, matching of nearby views and triangulation with the fixed
-    cameras."""
+    cameras (``found``: the ``training_view_matches`` of these images, when the caller has them)."""
     options = options or TriangulationOptions()
-    keypoints, descriptors = extract_sift(images, options.max_features, progress, options.sift_upsample)
-    matches = match_pairs(descriptors, neighbour_pairs(camera_to_worlds, options.match_neighbors), progress)
+    keypoints, matches = found or training_view_matches(images, camera_to_worlds, options, progress)
     tracks = build_tracks(matches, [len(k) for k in keypoints])
     sparse = triangulate_tracks(tracks, keypoints, camera_to_worlds.double(), intrinsics.double(), options, depth_bounds)
     if options.dense_stereo:

@@ -14,13 +14,20 @@ from jaxtyping import Float
 from torch import Tensor
 
 from frugalnerf_ns.cache import load_keyed_arrays, save_keyed_arrays
-from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions, points_inside_box, triangulate_training_views
+from frugalnerf_ns.data.camera_check import CameraCheck, check_matches
+from frugalnerf_ns.data.sparse_points import (
+    SparseDepth,
+    TriangulationOptions,
+    points_inside_box,
+    training_view_matches,
+    triangulate_training_views,
+)
 
 if TYPE_CHECKING:
     from nerfstudio.cameras.cameras import Cameras
     from nerfstudio.cameras.rays import RayBundle
 
-CACHE_VERSION = 2  # 2: matching in torch, nearest-camera pairs, feature cap enforced
+CACHE_VERSION = 3  # 2: matching in torch, nearest-camera pairs, feature cap enforced; 3: the camera check kept
 
 
 def cache_key(
@@ -43,10 +50,11 @@ def cache_key(
     return digest.hexdigest()
 
 
-def save_sparse_depth(path: Path, sparse: SparseDepth, key: str) -> None:
+def save_sparse_depth(path: Path, sparse: SparseDepth, key: str, check: Optional[CameraCheck] = None) -> None:
+    extra = {} if check is None else {"camera_check": np.array(json.dumps(check.to_dict()))}
     save_keyed_arrays(
         path, key, points=sparse.points.double().numpy(), view=sparse.view.numpy(), point=sparse.point.numpy(),
-        pixels=sparse.pixels.double().numpy(), depth=sparse.depth.double().numpy(),
+        pixels=sparse.pixels.double().numpy(), depth=sparse.depth.double().numpy(), **extra,
     )
 
 
@@ -80,20 +88,34 @@ def all_training_sparse_depth(
     bounds: Optional[Tuple[float, float]],
     cache_path: Path,
     say: Callable[[str], None],
-) -> SparseDepth:
-    """Every point triangulated between the training views (no box, no minimum): from the cache when it matches
-    these views and options, else triangulated and cached."""
+) -> Tuple[SparseDepth, Optional[CameraCheck]]:
+    """Every point triangulated between the training views (no box, no minimum) and the camera check of their
+    matches (``camera_check``; None for a cache written without it): from the cache when it matches these views
+    and options, else triangulated and cached."""
     key = cache_key(images, camera_to_worlds, intrinsics, options, bounds)
     sparse, why = load_sparse_depth(cache_path, key)
+    check = load_camera_check(cache_path) if sparse is not None else None
     if sparse is None:
         if why != "missing":
             say(f"[bold yellow]frugalnerf: sparse-depth cache {cache_path} is {why}: rebuilding it.")
-        sparse = triangulate_training_views(images, camera_to_worlds, intrinsics, options, bounds)
+        found = training_view_matches(images, camera_to_worlds, options)
+        sparse = triangulate_training_views(images, camera_to_worlds, intrinsics, options, bounds, found=found)
+        size = (int(images[0].shape[1]), int(images[0].shape[0]))
+        check = check_matches(*found, camera_to_worlds, intrinsics, size, options.max_reprojection_error)
         try:
-            save_sparse_depth(cache_path, sparse, key)
+            save_sparse_depth(cache_path, sparse, key, check)
         except OSError as err:
             say(f"frugalnerf: could not cache sparse points in {cache_path} ({err}); they stay in memory.")
-    return sparse
+    return sparse, check
+
+
+def load_camera_check(path: Path) -> Optional[CameraCheck]:
+    """The camera check a points cache holds (read after its key matched), None when it holds none."""
+    try:
+        with np.load(path) as arrays:
+            return CameraCheck.from_dict(json.loads(str(arrays["camera_check"]))) if "camera_check" in arrays else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def usable_points(

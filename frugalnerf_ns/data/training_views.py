@@ -85,10 +85,12 @@ def training_view_points(
     if every is None:
         images = [np.round(image.cpu().numpy() * 255.0).astype(np.uint8) for image in rgb]
         near_far = metadata.get("near_far")
-        every = all_training_sparse_depth(
+        every, check = all_training_sparse_depth(
             images, cameras.camera_to_worlds.double(), intrinsics.double().cpu(), options,
             None if near_far is None else (float(near_far[0]), float(near_far[1])), cache, CONSOLE.print,
         )
+        if outputs.metadata is not None and check is not None:
+            outputs.metadata["camera_check"] = check  # the start-up summary reports it (run/pipeline.py)
         how = "triangulating the training views"
     # else photos without cameras: the points their cameras were estimated with (no second triangulation).
     shell = far_shell(every.points, box) if far_shell_wanted and box is not None else None

@@ -19,6 +19,7 @@ from frugalnerf_ns.geometry.viewpoints import coverage_line
 from frugalnerf_ns.model.geometric_adaptation import ADAPTATION_METRIC
 from frugalnerf_ns.model.objective import carve_unseen_space, geo_weights, uses_relative_sparse_depth
 from frugalnerf_ns.run.checkpoints import use_intact_checkpoints_in_eval_tools
+from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.errors import one_line_errors
 from frugalnerf_ns.tools.video import teach_ns_render_spiral
 
@@ -145,8 +146,48 @@ def scene_summary(datamanager, model) -> str:
         f"mean, cameras cover {layout.coverage_degrees:.0f} deg around the focus); {views} training views\n"
         f"  space: {space}; {grid}\n"
         f"  losses: geometric adaptation {geo}, novel rays {novel}, sparse depth {sparse}, occlusion {occlusion}\n"
-        f"  photos: {photo_coverage(datamanager)}"
+        f"  photos: {photo_coverage(datamanager)}\n"
+        f"  cameras: {camera_line(datamanager)}"
     )
+
+
+CAMERA_FILE_HINTS = {
+    "LLFF": "poses_bounds.npy's hwf column (the full-size photos' height, width, focal) and images_<N>/ at 1/N of them",
+    "DTU": "the npz's world_mat_i against the images (--pipeline.datamanager.dataparser.intrinsics-width names the frame "
+           "K refers to)",
+    "Blender": "the transforms files' fl_x / cx / camera_angle_x and transform_matrix (camera-to-world, OpenGL axes; "
+               "--pipeline.datamanager.dataparser.capture picks the reading)",
+    "Nerfstudio": "transforms.json's fl_x / cx and transform_matrix (camera-to-world, OpenGL axes)",
+    "Colmap": "the COLMAP model's cameras against the images it was made from",
+    "RealEstate": "the clip's intrinsics (normalised by the frame size) and extrinsics (world-to-camera)",
+}
+
+
+def camera_line(datamanager) -> str:
+    """Whether the cameras as read explain the training photos (``data/camera_check.py``), from the sparse points'
+    matches; one warning with the likely causes and the file to check when they do not."""
+    metadata = datamanager.train_dataparser_outputs.metadata or {}
+    check = metadata.get("camera_check")
+    if check is None:
+        if metadata.get("sparse_depth") is not None:
+            return "estimated from these photos (their points and reprojection error are in the lines above)"
+        return "not checked (the sparse points are off: --pipeline.datamanager.sparse-depth)"
+    if not check.judged:
+        return f"{check.facts()}: too few matches to judge them"
+    if not check.flagged:
+        return f"{check.facts()}: they explain the photos"
+    parser = type(datamanager.config.dataparser).__name__
+    target = next((hint for name, hint in CAMERA_FILE_HINTS.items() if name.lower() in parser.lower()), None)
+    if parser.startswith("Auto"):
+        from frugalnerf_ns.data.dataparsers.auto import detect_layout
+
+        try:
+            layout = detect_layout(Path(datamanager.config.dataparser.data))[1].__name__
+            target = next((hint for name, hint in CAMERA_FILE_HINTS.items() if name.lower() in layout.lower()), target)
+        except DataError:  # a hint only
+            pass
+    return (f"[bold yellow]{check.facts()}: the cameras as read do not explain the training photos; likely "
+            f"{'; '.join(check.causes)}. Check {target or 'the cameras file against the photos'}[/bold yellow]")
 
 
 def photo_coverage(datamanager) -> str:

@@ -190,7 +190,7 @@ def capture_outputs(
     c2w_train = train[1][:, :3, :4].astype(np.float64)
     intrinsics = torch.tensor([[work.fx, work.fy, work.cx, work.cy]] * len(train_files), dtype=torch.float64)
     images = [np.asarray(Image.open(f).convert("RGB")) for f in train_files]
-    sparse = all_training_sparse_depth(images, torch.from_numpy(c2w_train), intrinsics, TriangulationOptions(), None,
+    sparse, check = all_training_sparse_depth(images, torch.from_numpy(c2w_train), intrinsics, TriangulationOptions(), None,
                                        scene_cache_dir(data, say) / "capture_points.npz", say)
     bounds = near_far_from_points(sparse, c2w_train)
     if bounds is None:
@@ -226,6 +226,8 @@ def capture_outputs(
                                      (work.width, work.height), (near * scale, far * scale), ndc, float(scale), box,
                                      transform)
     world = (sparse.points.double().numpy() @ to_frame[:3, :3].T + to_frame[:3, 3]) * scale
+    if check is not None:
+        outputs.metadata["camera_check"] = check
     outputs.metadata["sparse_depth"] = SparseDepth(torch.from_numpy(world), sparse.view, sparse.point,
                                                    sparse.pixels.double(), sparse.depth.double() * scale)
     return outputs
