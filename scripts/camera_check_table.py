@@ -69,13 +69,35 @@ def broken_copies(name: str, images, c2w, intrinsics, other_c2w) -> List[Tuple[s
     return rows
 
 
+COPIES = ("as published", "focal x0.8", "focal x1.25", "principal point +10% of the width", "OpenCV axes read as OpenGL",
+          "images turned 90 degrees", "poses of another scene")
+
+
+def page_table(record: Dict) -> str:
+    """The user page's rows (docs/data.md): each scene's copies, the verdict and the median error."""
+    rows = []
+    for name, scene in record["scenes"].items():
+        views = " ".join(map(str, scene["options"].get("train_views", []))) or "paper split"
+        cells = []
+        for copy in COPIES:
+            check = scene["copies"][copy]
+            verdict = "flagged" if check["flagged"] else ("passes" if check["judged"] else "no verdict")
+            cells.append(f"{verdict} ({check['median_error']:.2f} px)")
+        rows.append(f"| {name} ({views}) | " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
 def main() -> None:
     from frugalnerf_ns.data.camera_check import check_cameras
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="*", default=list(SCENES))
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "notes" / "camera_check.json")
+    parser.add_argument("--page-table", action="store_true", help="print docs/data.md's rows from the record, check nothing")
     args = parser.parse_args()
+    if args.page_table:
+        print(page_table(json.loads(args.out.read_text())))
+        return
     record = {"command": "python scripts/camera_check_table.py", "machine": f"{platform.machine()}, torch {torch.__version__}",
               "scenes": {}}
     lines = ["| scene | copy | matches | points | median error (px) | in front | best focal (error) | best centre shift (error) | flagged |",
@@ -100,6 +122,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(record, indent=1) + "\n")
     print("\n".join(lines))
+    print(page_table(record))
 
 
 if __name__ == "__main__":

@@ -156,3 +156,21 @@ def test_the_start_up_summary_of_a_fern_copy_with_the_wrong_focal_warns_once(tmp
     assert "the focal length: 1.2" in warned and "poses_bounds.npy's hwf column" in warned
     published = line(FERN)
     assert published.endswith(": they explain the photos") and "median reprojection error" in published
+
+
+def test_the_user_pages_camera_table_is_the_records():
+    import importlib.util
+    import json
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("camera_check_table", root / "scripts" / "camera_check_table.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    record = json.loads((root / "docs" / "notes" / "camera_check.json").read_text())
+    rows = script.page_table(record).splitlines()
+    page = (root / "docs" / "data.md").read_text()
+    assert len(rows) == 8 and all(row in page for row in rows)
+    # The record's claim: every scene as published passes, every broken copy is flagged.
+    for scene in record["scenes"].values():
+        assert not scene["copies"]["as published"]["flagged"] and scene["copies"]["as published"]["judged"]
+        assert all(copy["flagged"] for name, copy in scene["copies"].items() if name != "as published")
