@@ -15,9 +15,9 @@ from frugalnerf_ns.data.dataparsers.realestate import RealEstateDataParserConfig
 
 frugal_auto = DataParserSpecification(AutoDataParserConfig(), "detect the layout of --data (FrugalNeRF default)")
 frugal_llff = DataParserSpecification(LLFFDataParserConfig(), "LLFF: poses_bounds.npy + images_N/, NDC")
-frugal_dtu = DataParserSpecification(DTUDataParserConfig(), "DTU / IDR: cameras_sphere.npz, image/, mask/")
+frugal_dtu = DataParserSpecification(DTUDataParserConfig(), "DTU / IDR / NeuS: cameras_sphere.npz, image/ or images/, mask/")
 frugal_blender = DataParserSpecification(
-    BlenderDataParserConfig(), "NeRF-synthetic (Blender): transforms_train.json / transforms_test.json, RGBA frames"
+    BlenderDataParserConfig(), "transforms_train.json / transforms_test.json: NeRF-synthetic (RGBA), or a real capture in those names"
 )
 frugal_realestate = DataParserSpecification(
     RealEstateDataParserConfig(), "RealEstate-10K (ViP-NeRF layout): rgb/, CameraIntrinsics.csv, CameraExtrinsics.csv"
