@@ -3,6 +3,8 @@
     python scripts/next_view_study.py plan                 # the splits, test frames and rule picks (no results used)
     python scripts/next_view_study.py run [--iterations N] # trains every planned run not yet done, one at a time
     python scripts/next_view_study.py table                # the table of every run (Markdown) and its JSON record
+    python scripts/next_view_study.py run --iterations 1500 --picks-from i750 --only S --rules R ...  # the same picks, longer
+    python scripts/next_view_study.py rank --iterations 1500 --picks-from i750    # do both lengths rank the rules alike?
 
 Protocol (fixed before any result was looked at): per capture, the frames in azimuth order around the focus of all
 its cameras; every ``TEST_EVERY``-th of them is a test frame, used by no run for training. Each starting split holds
@@ -210,14 +212,47 @@ def table(study: Dict, tag: str) -> None:
         print(f"first suggested with {score} ({g['splits']} splits): - random {g['random']:.2f} dB, - gap {g['gap']:.2f} dB")
 
 
+RANK_RECORD = ROOT / "docs" / "notes" / "next_view" / "rank_check.json"
+
+
+def rank_check(study: Dict, short: str, long: str) -> None:
+    """The same rules' frames trained at two lengths: each run's test PSNR and the order of the rules at each."""
+    suggestions = json.loads(SUGGESTIONS.read_text())
+    lines = [f"| split | rule | frame | PSNR at {short[1:]} steps | PSNR at {long[1:]} steps |", "|---|---|---|---|---|"]
+    record: Dict = {"short": int(short[1:]), "long": int(long[1:]), "preset": "frugalnerf-cpu", "seed": 42, "splits": {}}
+    for name, split in study["splits"].items():
+        key = f"{short}/{name}"
+        if key not in suggestions:
+            continue
+        picks = {"suggestion": suggestions[key]["snapped"][0]["frame"], **split["picks"]}
+        rows = {}
+        for rule, frame in picks.items():
+            scores = [RUNS / tag / name / f"frame{frame}" / "scores.json" for tag in (short, long)]
+            if all(path.is_file() for path in scores):
+                rows[rule] = {"frame": frame, short: json.loads(scores[0].read_text())["psnr"],
+                              long: json.loads(scores[1].read_text())["psnr"]}
+        if len(rows) < 2:
+            continue
+        order = {tag: sorted(rows, key=lambda rule: -rows[rule][tag]) for tag in (short, long)}
+        record["splits"][name] = {"runs": rows, "order": order, "same_order": order[short] == order[long]}
+        for rule, row in rows.items():
+            lines.append(f"| {name} | {rule} | {row['frame']} | {row[short]:.2f} | {row[long]:.2f} |")
+        lines.append(f"| {name} | order | | {' > '.join(order[short])} | {' > '.join(order[long])} |")
+    RANK_RECORD.write_text(json.dumps(record, indent=1) + "\n")
+    print("\n".join(lines))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("command", choices=["plan", "run", "table"])
+    parser.add_argument("command", choices=["plan", "run", "table", "rank"])
     parser.add_argument("--iterations", type=int, default=750)
     parser.add_argument("--force", action="store_true", help="plan: overwrite the existing plan")
     parser.add_argument("--only", nargs="*", default=None, help="split names to run, in this order")
     parser.add_argument("--resuggest", action="store_true",
                         help="run: ask the tool again on splits suggested with a score that is no longer its default")
+    parser.add_argument("--picks-from", default=None, help="run: train the frames the rules picked in this study "
+                        "(e.g. i750) at --iterations, without a k-photo run or a new suggestion")
+    parser.add_argument("--rules", nargs="*", default=None, help="run with --picks-from: only these rules' frames")
     parser.add_argument("--tool-root", type=Path, default=ROOT, help="source tree whose frugalnerf-next-view suggests")
     args = parser.parse_args()
     if args.command == "plan":
@@ -231,11 +266,24 @@ def main() -> None:
     if args.command == "table":
         table(study, f"i{args.iterations}")
         return
+    if args.command == "rank":  # --picks-from the shorter study, --iterations the longer
+        rank_check(study, args.picks_from or "i750", f"i{args.iterations}")
+        return
     if args.command == "run":
         tag = f"i{args.iterations}"
         suggestions = json.loads(SUGGESTIONS.read_text()) if SUGGESTIONS.is_file() else {}
         for name in args.only or list(study["splits"]):
             split = study["splits"][name]
+            if args.picks_from:
+                # The rules' frames as the shorter study picked them, trained longer: does the length of training
+                # change how the same picks rank?
+                suggestion = suggestions[f"{args.picks_from}/{name}"]["snapped"][0]["frame"]
+                picks = {"suggestion": suggestion, **split["picks"]}
+                for rule in args.rules or list(picks):
+                    train(f"{tag}/{name}/frame{picks[rule]}", split["scene"], split["photos"] + [picks[rule]],
+                          split["test"], args.iterations)
+                print(name, "done", flush=True)
+                continue
             base = train(f"{tag}/{name}/k", split["scene"], split["photos"], split["test"], args.iterations)
             key = f"{tag}/{name}"
             if key not in suggestions:
