@@ -119,6 +119,10 @@ def test_fern_as_published_is_not_flagged_and_each_broken_copy_is():
         assert check.flagged, (name, check.facts())
     turned = [np.ascontiguousarray(np.rot90(image)) for image in images]
     assert check_cameras(turned, c2w, K).flagged
+    # A textured photo of another scene in place of one of fern's: hardly a match, flagged (not "no verdict").
+    flower = np.asarray(Image.open(FERN.parent / "flower" / "images_8" / "image011.png").convert("RGB"))
+    unrelated = check_cameras([images[0], flower], c2w, K)
+    assert not unrelated.judged and unrelated.flagged and "almost no matches" in unrelated.causes[0]
 
 
 @needs_fern

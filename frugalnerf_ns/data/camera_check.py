@@ -10,6 +10,7 @@ on such splits an intrinsics error can pass; a turn between the views is what ex
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Dict, List, Sequence, Tuple
 
@@ -39,6 +40,10 @@ being wrong: on the shared scenes as published the best focal length and princip
 focal length 0.8x or 1.25x, or a principal point 10 % off, leaves 1.8-50x the error the right one does (the published
 scenes' own: at most 1.05x; docs/notes/camera-check.md)."""
 BETTER_BY_PIXELS = 0.1
+TEXTURED_FEATURES = 300
+"""Photos with this many SIFT features (a median) that still give fewer than ``MIN_MATCHES`` matches are flagged: a
+textured scene whose photos do not match (fern's 504x378 photos hold ~1400 features; the bird's 272x480 ones ~120,
+the procedural test scene's 96x72 ~100)."""
 SEARCH_TRACKS = 500
 """Tracks the search over other intrinsics judges them by (``check_tracks``)."""
 VERIFY_THRESHOLD = 1.0
@@ -67,6 +72,8 @@ class CameraCheck:
     """The principal point shift (fractions of width, height) that explains the matches best (``CENTRE_SHIFTS``)."""
     centre_error: float = float("inf")
     """The median error with the principal point so shifted."""
+    features: int = 0
+    """SIFT features a training photo holds (the median over the photos)."""
 
     @property
     def judged(self) -> bool:
@@ -79,7 +86,10 @@ class CameraCheck:
     def causes(self) -> List[str]:
         """What the matches point to, most specific first (empty: the cameras explain the photos)."""
         if not self.judged:
-            return []
+            if self.features < TEXTURED_FEATURES:
+                return []
+            return [f"almost no matches ({self.matches}) between textured photos (a median {self.features} features "
+                    "each): they share little of the scene, or the cameras pair the photos wrongly (their order)"]
         found = []
         if self.in_front < MIN_IN_FRONT:
             found.append(f"{100 * (1 - self.in_front):.0f}% of the matches triangulate behind a camera: the axis "
@@ -109,12 +119,14 @@ class CameraCheck:
     def from_dict(cls, values: Dict) -> "CameraCheck":
         return cls(int(values["matches"]), int(values["points"]), float(values["median_error"]), float(values["in_front"]),
                    float(values.get("max_error", 1.5)), float(values["focal_scale"]), float(values["focal_error"]),
-                   tuple(values["centre_shift"]), float(values["centre_error"]))  # type: ignore[arg-type]
+                   tuple(values["centre_shift"]), float(values["centre_error"]),  # type: ignore[arg-type]
+                   int(values.get("features", 0)))
 
     def to_dict(self) -> Dict[str, float]:
         return {"matches": self.matches, "points": self.points, "median_error": self.median_error, "max_error": self.max_error,
                 "in_front": self.in_front, "focal_scale": self.focal_scale, "focal_error": self.focal_error,
-                "centre_shift": list(self.centre_shift), "centre_error": self.centre_error, "judged": self.judged,
+                "centre_shift": list(self.centre_shift), "centre_error": self.centre_error, "features": self.features,
+                "judged": self.judged,
                 "flagged": self.flagged}
 
 
@@ -232,7 +244,8 @@ def check_matches(
     """``check_tracks`` on the tracks of the ``verified_matches``."""
     verified = verified_matches(keypoints, matches)
     tracks = build_tracks(verified, [len(k) for k in keypoints])
-    return check_tracks(tracks, keypoints, camera_to_worlds, intrinsics, size, max_error)
+    check = check_tracks(tracks, keypoints, camera_to_worlds, intrinsics, size, max_error)
+    return dataclasses.replace(check, features=int(np.median([len(k) for k in keypoints])))
 
 
 def check_cameras(

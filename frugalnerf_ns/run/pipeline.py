@@ -172,10 +172,9 @@ def camera_line(datamanager) -> str:
         if metadata.get("sparse_depth") is not None:
             return "estimated from these photos (their points and reprojection error are in the lines above)"
         return "not checked (the sparse points are off: --pipeline.datamanager.sparse-depth)"
-    if not check.judged:
-        return f"{check.facts()}: too few matches to judge them"
     if not check.flagged:
-        return f"{check.facts()}: they explain the photos"
+        verdict = "they explain the photos" if check.judged else "too few matches to judge them"
+        return f"{check.facts()}: {verdict}"
     parser = type(datamanager.config.dataparser).__name__
     target = next((hint for name, hint in CAMERA_FILE_HINTS.items() if name.lower() in parser.lower()), None)
     if parser.startswith("Auto"):
