@@ -156,7 +156,7 @@ CAMERA_FILE_HINTS = {
     "DTU": "the npz's world_mat_i against the images (--pipeline.datamanager.dataparser.intrinsics-width names the frame "
            "K refers to)",
     "Blender": "the transforms files' fl_x / cx / camera_angle_x and transform_matrix (camera-to-world, OpenGL axes; "
-               "--pipeline.datamanager.dataparser.capture picks the reading)",
+               "`frugal-blender --capture True|False` picks the reading)",
     "Nerfstudio": "transforms.json's fl_x / cx and transform_matrix (camera-to-world, OpenGL axes)",
     "Colmap": "the COLMAP model's cameras against the images it was made from",
     "RealEstate": "the clip's intrinsics (normalised by the frame size) and extrinsics (world-to-camera)",

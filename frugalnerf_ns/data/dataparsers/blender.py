@@ -115,7 +115,7 @@ class Blender(DataParser):
             CONSOLE.print(
                 f"frugalnerf: Blender scene, {len(indices)} training views {indices} of {len(frames)} in "
                 f"{SPLIT_FILES['train']}, {width}x{height} (downscale {factor}); {self._synthetic_why}"
-                + ("" if self.config.capture is False else " (--capture True reads it as a real capture)")
+                + ("" if self.config.capture is False else " (`frugal-blender --capture True` reads it as a real capture)")
             )
         return DataparserOutputs(
             image_filenames=files,
@@ -139,9 +139,9 @@ class Blender(DataParser):
             self._synthetic_why = (
                 "NeRF-synthetic: RGBA frames, camera_angle_x only, cameras "
                 f"{distance.min():.2f}-{distance.max():.2f} from the origin" if not reasons else
-                f"read as NeRF-synthetic (--capture False) though {'; '.join(reasons)}")
+                f"read as NeRF-synthetic (`frugal-blender --capture False`) though {'; '.join(reasons)}")
             return None
-        reasons = reasons or ["--capture True"]
+        reasons = reasons or ["`frugal-blender --capture True`"]
         splits, metas = {}, {}
         for source in ("train", "test"):
             path = data / SPLIT_FILES[source]

@@ -217,7 +217,7 @@ def capture_outputs(
         say(f"frugalnerf: {data}: a real capture in NeRF-synthetic's file names ({'; '.join(reasons)}): read with the "
             f"file's intrinsics (fl {camera.fx:.1f} {camera.fy:.1f}, principal point {camera.cx:.1f} {camera.cy:.1f} at "
             f"{camera.width}x{camera.height}), {undistorted}, {len(train_files)} views at {work.width}x{work.height}, "
-            f"{sparse.num_points} points, modelled {where}; --capture False reads it as NeRF-synthetic")
+            f"{sparse.num_points} points, modelled {where}; `frugal-blender --capture False` reads it as NeRF-synthetic")
         files, c2w = train_files, c2w_model
     else:
         files, c2w = working_copies(test[0], camera, factor, data, say), moved(test[1])
