@@ -225,6 +225,8 @@ def rank_check(study: Dict, short: str, long: str) -> None:
         if key not in suggestions:
             continue
         picks = {"suggestion": suggestions[key]["snapped"][0]["frame"], **split["picks"]}
+        if "earlier" in suggestions[key]:
+            picks["earlier"] = suggestions[key]["earlier"]["snapped"][0]["frame"]
         rows = {}
         for rule, frame in picks.items():
             scores = [RUNS / tag / name / f"frame{frame}" / "scores.json" for tag in (short, long)]
@@ -252,7 +254,8 @@ def main() -> None:
                         help="run: ask the tool again on splits suggested with a score that is no longer its default")
     parser.add_argument("--picks-from", default=None, help="run: train the frames the rules picked in this study "
                         "(e.g. i750) at --iterations, without a k-photo run or a new suggestion")
-    parser.add_argument("--rules", nargs="*", default=None, help="run with --picks-from: only these rules' frames")
+    parser.add_argument("--rules", nargs="*", default=None, help="run with --picks-from: only these rules' frames "
+                        "(suggestion, gap, random1, random2, earlier: the suggestion of the score that was the default before)")
     parser.add_argument("--tool-root", type=Path, default=ROOT, help="source tree whose frugalnerf-next-view suggests")
     args = parser.parse_args()
     if args.command == "plan":
@@ -277,8 +280,10 @@ def main() -> None:
             if args.picks_from:
                 # The rules' frames as the shorter study picked them, trained longer: does the length of training
                 # change how the same picks rank?
-                suggestion = suggestions[f"{args.picks_from}/{name}"]["snapped"][0]["frame"]
-                picks = {"suggestion": suggestion, **split["picks"]}
+                recorded = suggestions[f"{args.picks_from}/{name}"]
+                picks = {"suggestion": recorded["snapped"][0]["frame"], **split["picks"]}
+                if "earlier" in recorded:
+                    picks["earlier"] = recorded["earlier"]["snapped"][0]["frame"]
                 for rule in args.rules or list(picks):
                     train(f"{tag}/{name}/frame{picks[rule]}", split["scene"], split["photos"] + [picks[rule]],
                           split["test"], args.iterations)
