@@ -157,3 +157,11 @@ def test_a_dtu_folder_with_neither_image_folder_names_both(tmp_path):
     np.savez(tmp_path / "cameras.npz", world_mat_0=np.eye(4))
     with pytest.raises(DataError, match=r"neither image/ nor images/ nor MonoSDF"):
         DTUDataParserConfig(data=tmp_path).setup().get_dataparser_outputs("train")
+
+
+def test_a_colmap_project_with_a_stray_cameras_npz_stays_colmap(tmp_path):
+    from tests import layout_fixtures as fx
+
+    fx.write_colmap(tmp_path / "c")
+    np.savez(tmp_path / "c" / "cameras.npz", world_mat_0=np.eye(4))
+    assert detect_layout(tmp_path / "c")[0] == "COLMAP"

@@ -60,12 +60,11 @@ def test_a_capture_written_as_instant_ngp_reads_as_the_same_capture_as_its_llff_
     (rot, ratios), (rot_ref, ratios_ref) = relative_geometry(train.cameras.camera_to_worlds), relative_geometry(
         reference.cameras.camera_to_worlds)
     assert torch.allclose(rot, rot_ref, atol=1e-4) and torch.allclose(ratios, ratios_ref, atol=1e-4)
-    sparse = train.metadata["sparse_depth"]
-    assert sparse.num_points >= 10
-    # The points triangulated with the file's cameras project onto the pixels they were matched at.
-    rays = train.cameras.generate_rays(camera_indices=sparse.view[:, None], coords=sparse.pixels.flip(-1).float())
-    ends = rays.origins + rays.directions * sparse.depth[:, None].float()
-    assert float((ends - sparse.points[sparse.point].float()).norm(dim=-1).max()) < 1e-2 * float(sparse.depth.max())
+    # Near and far from the points the file's cameras triangulate: the bird's nearest surface ~1/0.75 after scaling,
+    # the far bound at least 100x it (the room around the subject).
+    near, far = train.metadata["near_far"]
+    assert near == pytest.approx(1 / 0.75) and far >= 100 * near
+    assert " points, modelled in a box" in line
     test = parser.get_dataparser_outputs("test")
     assert [p.stem for p in test.image_filenames] == [f"{i + 1:03d}" for i in TEST]
 
@@ -139,3 +138,9 @@ def test_a_frame_with_its_own_camera_or_a_fisheye_model_stops_with_one_line(tmp_
         path.write_text(json.dumps({**json.loads(path.read_text()), "camera_model": "OPENCV_FISHEYE"}))
     with pytest.raises(DataError, match=r"camera_model 'OPENCV_FISHEYE' is not read"):
         BlenderDataParserConfig(data=tmp_path / "b", train_views=(0, 1)).setup().get_dataparser_outputs("train")
+    fx.write_instant_ngp(tmp_path / "c")  # colmap2nerf.py marks a fisheye with is_fisheye and k3 / k4, no model
+    for split in ("train", "test"):
+        path = tmp_path / "c" / f"transforms_{split}.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "is_fisheye": True, "k4": 0.01}))
+    with pytest.raises(DataError, match=r"a fisheye camera \(is_fisheye / k4\) is not read"):
+        BlenderDataParserConfig(data=tmp_path / "c", train_views=(0, 1)).setup().get_dataparser_outputs("train")

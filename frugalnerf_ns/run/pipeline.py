@@ -171,7 +171,9 @@ def camera_line(datamanager) -> str:
     if check is None:
         if metadata.get("sparse_depth") is not None:
             return "estimated from these photos (their points and reprojection error are in the lines above)"
-        return "not checked (the sparse points are off: --pipeline.datamanager.sparse-depth)"
+        if datamanager.sparse is None and not datamanager.config.sparse_depth:
+            return "not checked (the sparse points are off: --pipeline.datamanager.sparse-depth)"
+        return "not checked (too few training views, or a points cache written without the check)"
     if not check.flagged:
         verdict = "they explain the photos" if check.judged else "too few matches to judge them"
         return f"{check.facts()}: {verdict}"

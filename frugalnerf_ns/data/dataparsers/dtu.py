@@ -157,14 +157,15 @@ def camera_file_of(data: Path) -> Optional[Path]:
 
 
 def is_dtu_layout(data: Path) -> bool:
-    """IDR/NeuS cameras beside its images (``image/``, ``images/`` or MonoSDF's). A folder that also holds a
-    ``poses_bounds.npy`` (NeuS's forks keep LLFF's file beside DTU's) is DTU only with object masks (``mask/``):
-    cameras npz and masks are what LLFF lacks and DTU's protocol needs."""
+    """IDR/NeuS cameras beside its images (``image/``, ``images/`` or MonoSDF's). A folder that also holds another
+    layout's cameras (a ``poses_bounds.npy``: NeuS's forks keep LLFF's file beside DTU's; a COLMAP ``sparse/``) is
+    DTU only with object masks (``mask/``): cameras npz and masks are what the others lack and DTU's protocol needs."""
     if camera_file_of(data) is None:
         return False
     if not (any((data / name).is_dir() for name in IMAGE_FOLDERS) or any(data.glob(f"*{MONOSDF_SUFFIX}"))):
         return False
-    return not (data / "poses_bounds.npy").is_file() or (data / "mask").is_dir()
+    other = (data / "poses_bounds.npy").is_file() or (data / "sparse").is_dir() or (data / "colmap" / "sparse").is_dir()
+    return not other or (data / "mask").is_dir()
 
 
 def infer_intrinsics_width(K: np.ndarray, image_width: int) -> float:

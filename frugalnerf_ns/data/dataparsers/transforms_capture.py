@@ -57,9 +57,11 @@ class FileCamera:
     height: int
     distortion: Tuple[float, float, float, float, float]
 
-    def scaled_to(self, width: int, height: int) -> "FileCamera":
-        sx, sy = width / self.width, height / self.height
-        return FileCamera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height, self.distortion)
+    def downscaled(self, factor: int) -> "FileCamera":
+        """The camera of the frames area-downscaled by ``factor`` (``area_downscale`` drops the last partial blocks:
+        the scale is exactly 1 / factor)."""
+        return FileCamera(self.fx / factor, self.fy / factor, self.cx / factor, self.cy / factor,
+                          self.width // factor, self.height // factor, self.distortion)
 
     @property
     def distorted(self) -> bool:
@@ -123,6 +125,8 @@ def file_camera(meta: Dict, image_size: Tuple[int, int], path: Path) -> FileCame
                         tuple(number(k, 0.0) for k in DISTORTION_KEYS))  # type: ignore[arg-type]
     if fx <= 0 or fy <= 0 or width <= 0 or height <= 0:
         raise DataError(f"{path}: focal lengths and image size must be positive (fl_x {fx}, fl_y {fy}, {width}x{height})")
+    if meta.get("is_fisheye") or float(meta.get("k4", 0.0) or 0.0) != 0.0:
+        raise DataError(f"{path}: a fisheye camera (is_fisheye / k4) is not read (pinhole and OpenCV distortion are)")
     if meta.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         raise DataError(f"{path}: camera_model {meta['camera_model']!r} is not read (pinhole and OpenCV distortion are)")
     return camera
@@ -152,7 +156,10 @@ def working_copies(
             if camera.distorted:
                 import cv2  # nerfstudio's dependency; only distorted captures need it
 
-                pixels = cv2.undistort(pixels, camera.matrix(), np.asarray(camera.distortion))
+                # OpenCV puts pixel centres at integers, the file (COLMAP's, nerfstudio's) at +0.5: half a pixel off.
+                opencv = camera.matrix()
+                opencv[:2, 2] -= 0.5
+                pixels = cv2.undistort(pixels, opencv, np.asarray(camera.distortion))
             small = Image.fromarray(area_downscale(pixels, factor) if factor > 1 else pixels)
             target.parent.mkdir(parents=True, exist_ok=True)
             write_atomically(target, lambda f: small.save(f, format="PNG"))
@@ -185,13 +192,18 @@ def capture_outputs(
         raise DataError(f"--downscale-factor must be >= 1 (got {factor})")
     if config.focus_box_scale <= 0:
         raise DataError(f"--focus-box-scale must be positive (got {config.focus_box_scale})")
-    work = camera.scaled_to(camera.width // factor, camera.height // factor)
+    work = camera.downscaled(factor)
     train_files = working_copies(train[0], camera, factor, data, say)
     c2w_train = train[1][:, :3, :4].astype(np.float64)
     intrinsics = torch.tensor([[work.fx, work.fy, work.cx, work.cy]] * len(train_files), dtype=torch.float64)
-    images = [np.asarray(Image.open(f).convert("RGB")) for f in train_files]
-    sparse, check = all_training_sparse_depth(images, torch.from_numpy(c2w_train), intrinsics, TriangulationOptions(), None,
-                                       scene_cache_dir(data, say) / "capture_points.npz", say)
+    images = []
+    for file in train_files:
+        with Image.open(file) as img:
+            images.append(np.asarray(img.convert("RGB")))
+    # For near and far only: training triangulates again with its own options (--pipeline.datamanager.triangulation)
+    # in the model's frame, and checks the cameras there.
+    sparse, _ = all_training_sparse_depth(images, torch.from_numpy(c2w_train), intrinsics, TriangulationOptions(), None,
+                                          scene_cache_dir(data, say) / "capture_points.npz", say)
     bounds = near_far_from_points(sparse, c2w_train)
     if bounds is None:
         # Too few points to say: a tenth of the cameras' spread.
@@ -225,9 +237,4 @@ def capture_outputs(
     outputs = forward_facing_outputs(files, c2w, c2w_model, (work.fx, work.fy, work.cx, work.cy),
                                      (work.width, work.height), (near * scale, far * scale), ndc, float(scale), box,
                                      transform)
-    world = (sparse.points.double().numpy() @ to_frame[:3, :3].T + to_frame[:3, 3]) * scale
-    if check is not None:
-        outputs.metadata["camera_check"] = check
-    outputs.metadata["sparse_depth"] = SparseDepth(torch.from_numpy(world), sparse.view, sparse.point,
-                                                   sparse.pixels.double(), sparse.depth.double() * scale)
     return outputs
