@@ -89,16 +89,20 @@ def page_table(record: Dict) -> str:
 
 def main() -> None:
     from frugalnerf_ns.data.camera_check import check_cameras
+    from frugalnerf_ns.data.sparse_points import TriangulationOptions
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="*", default=list(SCENES))
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "notes" / "camera_check.json")
+    parser.add_argument("--sift-upsample", type=int, default=1,
+                        help="SIFT on the images enlarged this many times (the options' default 1; frugalnerf-cpu: 2)")
     parser.add_argument("--page-table", action="store_true", help="print docs/data.md's rows from the record, check nothing")
     args = parser.parse_args()
     if args.page_table:
         print(page_table(json.loads(args.out.read_text())))
         return
-    record = {"command": "python scripts/camera_check_table.py", "machine": f"{platform.machine()}, torch {torch.__version__}",
+    record = {"command": f"python scripts/camera_check_table.py --sift-upsample {args.sift_upsample}",
+              "sift_upsample": args.sift_upsample, "machine": f"{platform.machine()}, torch {torch.__version__}",
               "scenes": {}}
     lines = ["| scene | copy | matches | points | median error (px) | in front | best focal (error) | best centre shift (error) | flagged |",
              "|---|---|---|---|---|---|---|---|---|"]
@@ -112,7 +116,7 @@ def main() -> None:
                                   "size": list(images[0].shape[1::-1]), "copies": {}}
         for label, imgs, cams, k in broken_copies(name, images, c2w, intrinsics, splits[OTHER[name]][1]):
             start = time.perf_counter()
-            check = check_cameras(imgs, cams, k)
+            check = check_cameras(imgs, cams, k, TriangulationOptions(sift_upsample=args.sift_upsample))
             row = {**check.to_dict(), "seconds": time.perf_counter() - start}
             record["scenes"][name]["copies"][label] = row
             lines.append(f"| {name} | {label} | {check.matches} | {check.points} | {check.median_error:.2f} | "
