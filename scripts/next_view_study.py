@@ -34,6 +34,9 @@ PLAN = ROOT / "docs" / "notes" / "next_view" / "plan.json"
 RECORD = ROOT / "docs" / "notes" / "next_view" / "study.json"
 SUGGESTIONS = ROOT / "docs" / "notes" / "next_view" / "suggestions.json"
 TEST_EVERY = {"juice_box": 8, "bird": 12}
+NEAR_FRAME = 1.0
+"""A suggestion whose nearest pool frame stands farther than this (the data's units) has no frame to stand in for it
+(the juice box's capture covers 82 degrees of the table; a suggestion on its far side snaps 10-13 units away)."""
 # Starting splits as target azimuths (degrees around the focus of all frames; the juice box's frames span 0-82,
 # the bird's the whole circle): a pair at one end, a pair across the arc, three photos; the bird's gate split
 # (frames 0 23 46), a close pair, three photos 120 degrees apart.
@@ -166,6 +169,7 @@ def table(study: Dict, tag: str) -> None:
     lines = ["| split | photos (azimuth) | rule | next frame (azimuth) | test PSNR / SSIM / LPIPS | train min |",
              "|---|---|---|---|---|---|"]
     gains = {"random": [], "gap": []}
+    near = {"random": [], "gap": []}  # splits whose capture holds a frame where the suggestion stands
     by_score: Dict[str, Dict[str, List[float]]] = {}  # the scores the splits were first suggested with
     for name, split in study["splits"].items():
         key = f"{tag}/{name}"
@@ -195,6 +199,9 @@ def table(study: Dict, tag: str) -> None:
             random_psnr = (scores["random1"]["psnr"] + scores["random2"]["psnr"]) / 2.0
             gains["random"].append(scores["suggestion"]["psnr"] - random_psnr)
             gains["gap"].append(scores["suggestion"]["psnr"] - scores["gap"]["psnr"])
+            if suggestion["snapped"][0]["distance"] <= NEAR_FRAME:
+                near["random"].append(gains["random"][-1])
+                near["gap"].append(gains["gap"][-1])
             first = "earlier suggestion" if "earlier suggestion" in scores else "suggestion"
             first_score = suggestion.get("earlier", suggestion)["score"]
             by_score.setdefault(first_score, {"random": [], "gap": []})
@@ -202,12 +209,16 @@ def table(study: Dict, tag: str) -> None:
             by_score[first_score]["gap"].append(scores[first]["psnr"] - scores["gap"]["psnr"])
     record["mean_gain_db"] = {rule: (sum(v) / len(v) if v else None) for rule, v in gains.items()}
     record["complete_splits"] = len(gains["gap"])
+    record["near_frame"] = {"max_distance": NEAR_FRAME, "splits": len(near["gap"]),
+                            "mean_gain_db": {rule: (sum(v) / len(v) if v else None) for rule, v in near.items()}}
     record["first_suggested_with"] = {score: {rule: sum(v) / len(v) for rule, v in g.items()} | {"splits": len(g["gap"])}
                                       for score, g in by_score.items()}
     RECORD.write_text(json.dumps(record, indent=1) + "\n")
     print("\n".join(lines))
     print(f"\nover {len(gains['gap'])} complete splits: suggestion - random (mean of 2 draws) "
           f"{record['mean_gain_db']['random']} dB, suggestion - largest gap {record['mean_gain_db']['gap']} dB")
+    print(f"where a frame stands within {NEAR_FRAME} of the suggestion ({len(near['gap'])} splits): "
+          f"- random {record['near_frame']['mean_gain_db']['random']} dB, - gap {record['near_frame']['mean_gain_db']['gap']} dB")
     for score, g in record["first_suggested_with"].items():
         print(f"first suggested with {score} ({g['splits']} splits): - random {g['random']:.2f} dB, - gap {g['gap']:.2f} dB")
 
