@@ -239,11 +239,15 @@ def rank_check(study: Dict, short: str, long: str) -> None:
         if "earlier" in suggestions[key]:
             picks["earlier"] = suggestions[key]["earlier"]["snapped"][0]["frame"]
         rows = {}
+        # The shorter study's scores from its run folders, else from its committed record (a fresh checkout).
+        recorded = json.loads(RECORD.read_text())["splits"].get(name, {}) if RECORD.is_file() else {}
+        by_frame = {f"frame{recorded['picks'][r]}": run["psnr"] for r, run in recorded.get("runs", {}).items()
+                    if r in recorded.get("picks", {})}
         for rule, frame in picks.items():
-            scores = [RUNS / tag / name / f"frame{frame}" / "scores.json" for tag in (short, long)]
-            if all(path.is_file() for path in scores):
-                rows[rule] = {"frame": frame, short: json.loads(scores[0].read_text())["psnr"],
-                              long: json.loads(scores[1].read_text())["psnr"]}
+            short_file, long_file = (RUNS / tag / name / f"frame{frame}" / "scores.json" for tag in (short, long))
+            short_psnr = json.loads(short_file.read_text())["psnr"] if short_file.is_file() else by_frame.get(f"frame{frame}")
+            if short_psnr is not None and long_file.is_file():
+                rows[rule] = {"frame": frame, short: short_psnr, long: json.loads(long_file.read_text())["psnr"]}
         if len(rows) < 2:
             continue
         order = {tag: sorted(rows, key=lambda rule: -rows[rule][tag]) for tag in (short, long)}
