@@ -30,7 +30,7 @@ LAYOUTS = {
     "llff photos only": (fx.write_llff_photos, lambda d: LLFFDataParserConfig(
         data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "dtu": (fx.write_dtu, lambda d: DTUDataParserConfig(data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
-    "realestate": (fx.write_realestate, lambda d: RealEstateDataParserConfig(data=d, num_train_views=4)),
+    "realestate": (fx.write_realestate, lambda d: RealEstateDataParserConfig(data=d, num_train_views=4, near_bound=1.0)),
     "colmap": (fx.write_colmap, lambda d: FewShotColmapDataParserConfig(
         data=d, colmap_path=Path("sparse/0"), train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "colmap photos only": (fx.write_colmap_photos, lambda d: FewShotColmapDataParserConfig(
@@ -248,7 +248,9 @@ def test_auto_detects_each_layout(layout, tmp_path):
     name, config_type = detect_layout(tmp_path / layout)
     assert config_type is type(LAYOUTS[layout][1](tmp_path))
     factor = 2 if layout == "llff" else None  # the fixture writes images_2/
-    outputs = AutoDataParserConfig(data=tmp_path / layout, downscale_factor=factor).setup().get_dataparser_outputs("train")
+    near = 1.0 if layout == "realestate" else None  # flat frames: no points to find it from
+    outputs = AutoDataParserConfig(data=tmp_path / layout, downscale_factor=factor, near_bound=near).setup() \
+        .get_dataparser_outputs("train")
     assert len(outputs.image_filenames) >= 2
 
 

@@ -8,7 +8,7 @@ for known scenes or are sampled uniformly from the non-test frames.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import yaml
@@ -106,3 +106,12 @@ def check_indices(indices: Sequence[int], num_frames: int, kind: str, what: str)
         raise DataError(f"{what}: {kind} view(s) {bad} do not exist (the scene has {num_frames} frames: 0..{num_frames - 1})")
     if len(set(indices)) != len(indices):
         raise DataError(f"{what}: {kind} views {list(indices)} repeat a view")
+
+
+def spread_split(num_frames: int, counts: Sequence[int] = (2, 3, 4)) -> Tuple[Dict[int, List[int]], List[int]]:
+    """Splits of a short clip: for each view count, training frames spread evenly over it (first and last included,
+    ``uniform_subset``); test frames: every frame none of these splits trains on, so each count is scored on the same
+    frames, all between training frames (no extrapolation past the clip's ends)."""
+    train = {count: uniform_subset(list(range(num_frames)), count) for count in counts}
+    used = {frame for frames in train.values() for frame in frames}
+    return train, [frame for frame in range(num_frames) if frame not in used]

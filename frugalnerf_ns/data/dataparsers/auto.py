@@ -65,6 +65,9 @@ class AutoDataParserConfig(FewShotDataParserConfig):
     focus_box_scale: Optional[float] = None
     """LLFF and photos without cameras, splits that are not forward-facing: half the side of the box around the
     focus in farthest-camera distances (default 1.2)."""
+    near_bound: Optional[float] = None
+    """RealEstate only: the closest content's distance in the poses' units (default: from the points triangulated
+    between the training views)."""
     poses: PoseEstimationOptions = PoseEstimationOptions()
     """Photos without cameras only: how their cameras are estimated (field of view without EXIF, focal length
     refinement, features, thresholds)."""

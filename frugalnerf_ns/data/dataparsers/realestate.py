@@ -4,25 +4,33 @@
     <scene>/CameraIntrinsics.csv        one row per frame: K (3x3, pixels of these frames) flattened, 9 values
     <scene>/CameraExtrinsics.csv        one row per frame: world-to-camera (4x4, OpenCV axes) flattened, 16 values
 
-Forward-facing, so modelled in NDC like LLFF. The poses are up to scale (SLAM): ``near_bound`` says how far
-the closest content is, in the poses' units.
+Forward-facing, so modelled in NDC like LLFF. The poses are up to scale (SLAM): the closest content's distance,
+in the poses' units, comes from the points triangulated between the training views unless ``near_bound`` gives it.
+
+Splits: ViP-NeRF's for its 50-frame clips (training frames 10, 20, 30 ...; configs/splits.yaml); a shorter clip
+(pixelSplat's frames, a few video frames apart) trains on frames spread over it, first and last included, and tests
+on the frames no 2-, 3- or 4-view split trains on, so every view count is scored on the same frames between its
+training frames (``splits.spread_split``; the shared clips' splits are written out in configs/splits.yaml).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Type
+from typing import Callable, List, Optional, Tuple, Type
 
 import numpy as np
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataparserOutputs
+from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 
+from frugalnerf_ns.cache import scene_cache_dir
 from frugalnerf_ns.geometry.camera_conventions import opencv_to_opengl, recenter
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.dataparsers.common import FewShotDataParserConfig, check_images, list_images, split_indices
 from frugalnerf_ns.data.dataparsers.llff import forward_facing_outputs
-from frugalnerf_ns.data.splits import every_nth, load_split_table
+from frugalnerf_ns.data.scene_bounds import FAR_OVER_NEAR, near_far_from_points, training_points
+from frugalnerf_ns.data.splits import ViewSplit, every_nth, load_split_table, spread_split
 
 REALESTATE_FILES = ("CameraIntrinsics.csv", "CameraExtrinsics.csv")
 
@@ -34,10 +42,12 @@ class RealEstateDataParserConfig(FewShotDataParserConfig):
     _target: Type = field(default_factory=lambda: RealEstate)
     ndc: bool = True
     """Model the scene in normalised device coordinates."""
-    near_bound: float = 1.0
-    """Distance of the closest content in the poses' units (scaled to 1 / bd_factor, as LLFF's near bound)."""
-    far_bound: float = 100.0
-    """Distance of the farthest content in the poses' units (only for the metric box when ndc is off)."""
+    near_bound: Optional[float] = None
+    """Distance of the closest content in the poses' units (scaled to 1 / bd_factor, as LLFF's near bound); default:
+    the 1st percentile of the depths of the points triangulated between the training views."""
+    far_bound: Optional[float] = None
+    """Distance of the farthest content in the poses' units (only for the metric box when ndc is off); default: the
+    99th percentile of the points' depths, at least 100x the near bound (100x a given near bound)."""
     bd_factor: float = 0.75
     """As for LLFF: the near bound lands at 1 / bd_factor, in front of NDC's near plane at 1."""
 
@@ -70,22 +80,50 @@ class RealEstate(DataParser):
         with Image.open(images[0]) as img:
             width, height = img.size
         c2w = opencv_to_opengl(np.linalg.inv(w2c)[:, :3, :4])
-        scale = 1.0 / (self.config.near_bound * self.config.bd_factor)
-        c2w[:, :, 3] *= scale
-        c2w = recenter(c2w)
-
-        table = load_split_table()["realestate"]
-        views = self.config.split_views(
-            len(images),
-            every_nth(len(images), table["test_every"]),
-            {int(k): v for k, v in table["train_views"].items()},
-            default_test_excludes_train=True,
-        )
+        views = self._views(len(images))
         indices = split_indices(split, views)
         check_images([images[i] for i in indices])
+        say = CONSOLE.print if split == "train" else (lambda _: None)
+        near, far = self._bounds(data, views.train, [images[i] for i in views.train], c2w[views.train], K[views.train], say)
+        scale = 1.0 / (near * self.config.bd_factor)
+        c2w[:, :, 3] *= scale
+        c2w = recenter(c2w)
         k0 = K[0]
-        near_far = (self.config.near_bound * scale, self.config.far_bound * scale)
         return forward_facing_outputs(
             [images[i] for i in indices], c2w[indices], c2w[views.train], (k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]),
-            (width, height), near_far, self.config.ndc, scale,
+            (width, height), (near * scale, far * scale), self.config.ndc, scale,
         )
+
+    def _views(self, num_frames: int) -> ViewSplit:
+        table = load_split_table()["realestate"]
+        clip = table.get("clips", {}).get(self.config.resolved_scene_name())
+        protocol = {int(k): v for k, v in table["train_views"].items()}
+        if clip is not None:
+            train_views, test = {int(k): v for k, v in clip["train_views"].items()}, clip["test"]
+        elif num_frames <= max(max(v) for v in protocol.values()):
+            # Too short for ViP-NeRF's frames: training frames spread over the clip, the frames between them tested.
+            train_views, test = spread_split(num_frames)
+        else:
+            train_views, test = protocol, every_nth(num_frames, table["test_every"])
+        return self.config.split_views(num_frames, test, train_views, default_test_excludes_train=True)
+
+    def _bounds(self, data: Path, train: List[int], files: List[Path], c2w: np.ndarray, K: np.ndarray,
+                say: Callable[[str], None]) -> Tuple[float, float]:
+        """(near, far) in the poses' units: as given, else from the training views' triangulated points."""
+        near, far = self.config.near_bound, self.config.far_bound
+        if near is not None and near <= 0:
+            raise DataError(f"--near-bound must be positive (got {near})")
+        if near is not None:
+            return near, far if far is not None else FAR_OVER_NEAR * near
+        sparse = training_points(files, c2w, [(k[0, 0], k[1, 1], k[0, 2], k[1, 2]) for k in K],
+                                 scene_cache_dir(data, say) / f"realestate_points_{'-'.join(map(str, train))}.npz", say)
+        bounds = near_far_from_points(sparse, c2w)
+        if bounds is None:
+            raise DataError(f"{data}: only {sparse.num_points} points triangulated between the {len(files)} training "
+                            "views, too few to tell how near the content is: give --near-bound (the closest content's "
+                            "distance in the poses' units)")
+        say(f"frugalnerf: {data}: the poses have no scale; the closest content is {bounds[0]:.3g} units from the "
+            f"training cameras and the farthest {bounds[1]:.3g} ({sparse.num_points} points triangulated between "
+            f"the {len(files)} training views); --near-bound sets it")
+        near = bounds[0]
+        return near, far if far is not None else max(bounds[1], FAR_OVER_NEAR * near)

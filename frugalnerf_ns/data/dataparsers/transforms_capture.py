@@ -28,18 +28,12 @@ from frugalnerf_ns.cache import scene_cache_dir, write_atomically
 from frugalnerf_ns.data.dataparsers.llff import forward_facing_outputs, scene_space
 from frugalnerf_ns.data.downscaled_images import area_downscale, factor_for_long_side
 from frugalnerf_ns.data.input_checks import DataError
-from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions
-from frugalnerf_ns.data.training_points import all_training_sparse_depth
+from frugalnerf_ns.data.scene_bounds import FAR_OVER_NEAR, near_far_from_points, training_points
 from frugalnerf_ns.geometry.camera_conventions import average_pose
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 """OpenCV's order (cv2.undistort's distCoeffs: k1, k2, p1, p2, k3)."""
-FAR_OVER_NEAR = 100.0
-"""The far bound is at least this many times the near one: a few points matched between 2-4 photos lie on the subject,
-while the room around it reaches farther (COLMAP's bounds for the shared captures: the bird 125x, the juice box ~90x)."""
-MIN_POINTS_FOR_BOUNDS = 10
-"""Fewer triangulated points than this: near and far come from the cameras (a guess, said)."""
 COPIES_VERSION = 1
 BD_FACTOR = 0.75
 """The nearest point lands at 1 / BD_FACTOR from the cameras (NeRF's LLFF loader, as photos without cameras)."""
@@ -167,20 +161,6 @@ def working_copies(
     return out
 
 
-def near_far_from_points(sparse: SparseDepth, c2w: np.ndarray) -> Optional[Tuple[float, float]]:
-    """Near and far along the training cameras' axes from their points (1st and 99th percentiles, as photos
-    without cameras get theirs), or None with fewer than ``MIN_POINTS_FOR_BOUNDS`` points."""
-    if sparse.num_points < MIN_POINTS_FOR_BOUNDS:
-        return None
-    points = sparse.points.double().numpy()[sparse.point.numpy()]
-    pose = c2w[sparse.view.numpy()]
-    depth = -np.einsum("nd,nd->n", points - pose[:, :3, 3], pose[:, :3, 2])
-    depth = depth[depth > 0]
-    if depth.size < MIN_POINTS_FOR_BOUNDS:
-        return None
-    return float(np.percentile(depth, 1.0)), float(np.percentile(depth, 99.0))
-
-
 def capture_outputs(
     config, data: Path, split: str, train: Tuple[List[Path], np.ndarray], test: Tuple[List[Path], np.ndarray],
     camera: FileCamera, reasons: List[str], say: Callable[[str], None],
@@ -195,15 +175,10 @@ def capture_outputs(
     work = camera.downscaled(factor)
     train_files = working_copies(train[0], camera, factor, data, say)
     c2w_train = train[1][:, :3, :4].astype(np.float64)
-    intrinsics = torch.tensor([[work.fx, work.fy, work.cx, work.cy]] * len(train_files), dtype=torch.float64)
-    images = []
-    for file in train_files:
-        with Image.open(file) as img:
-            images.append(np.asarray(img.convert("RGB")))
-    # For near and far only: training triangulates again with its own options (--pipeline.datamanager.triangulation)
-    # in the model's frame, and checks the cameras there.
-    sparse, _ = all_training_sparse_depth(images, torch.from_numpy(c2w_train), intrinsics, TriangulationOptions(), None,
-                                          scene_cache_dir(data, say) / "capture_points.npz", say)
+    # For near and far only: training triangulates again with its own options in the model's frame, and checks the
+    # cameras there.
+    sparse = training_points(train_files, c2w_train, [(work.fx, work.fy, work.cx, work.cy)] * len(train_files),
+                             scene_cache_dir(data, say) / "capture_points.npz", say)
     bounds = near_far_from_points(sparse, c2w_train)
     if bounds is None:
         # Too few points to say: a tenth of the cameras' spread.

@@ -1,0 +1,87 @@
+"""RealEstate-10K: SLAM poses without scale get their near bound from the training views' points (so the poses' units
+do not matter), short clips get splits spread over them, and too few points stop with one line naming the option.
+The real clips (skipped where ../shared/data is absent) are 256x256 frames of pixelSplat's RealEstate-10K."""
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from frugalnerf_ns.data.dataparsers.realestate import RealEstateDataParserConfig
+from frugalnerf_ns.data.input_checks import DataError
+from frugalnerf_ns.data.splits import load_split_table, spread_split
+from tests import layout_fixtures as fx
+
+RE10K = Path(__file__).resolve().parents[2] / "shared" / "data" / "re10k"
+CLIP = RE10K / "5aca87f95a9412c6"
+
+
+def parse(data: Path, split: str = "train", **options):
+    return RealEstateDataParserConfig(data=data, **options).setup().get_dataparser_outputs(split)
+
+
+def test_spread_split_tests_only_frames_between_training_frames():
+    for frames in (9, 12, 25):
+        train, test = spread_split(frames)
+        assert sorted(train) == [2, 3, 4]
+        for count, views in train.items():
+            assert len(set(views)) == count and views[0] == 0 and views[-1] == frames - 1
+            assert not set(views) & set(test)
+        assert test and all(0 < t < frames - 1 for t in test)
+        assert set(test) | {v for views in train.values() for v in views} == set(range(frames))
+
+
+def test_the_shared_clips_splits_in_splits_yaml_are_the_spread_rule():
+    clips = load_split_table()["realestate"]["clips"]
+    assert len(clips) == 3
+    for name, clip in clips.items():
+        frames = clip["train_views"][2][-1] + 1  # the 2-view split holds the first and the last frame
+        train, test = spread_split(frames)
+        assert clip["train_views"] == train and clip["test"] == test, name
+        if (RE10K / name).is_dir():
+            assert len(list((RE10K / name / "rgb").iterdir())) == frames
+
+
+def test_short_clips_spread_their_views_and_long_ones_keep_vip_nerfs_frames(tmp_path):
+    fx.write_realestate(tmp_path / "short", count=12)
+    train, test = spread_split(12)
+    for count in (2, 3, 4):
+        outputs = parse(tmp_path / "short", num_train_views=count, near_bound=1.0)
+        assert [int(p.stem) for p in outputs.image_filenames] == train[count]
+    assert [int(p.stem) for p in parse(tmp_path / "short", "test", near_bound=1.0).image_filenames] == test
+    fx.write_realestate(tmp_path / "long", count=40)
+    assert [int(p.stem) for p in parse(tmp_path / "long", num_train_views=3, near_bound=1.0).image_filenames] == [10, 20, 30]
+
+
+def test_too_few_points_name_the_option(tmp_path):
+    fx.write_realestate(tmp_path / "flat", count=12)  # flat grey frames: nothing to match
+    with pytest.raises(DataError, match=r"too few to tell how near the content is: give --near-bound"):
+        parse(tmp_path / "flat")
+    with pytest.raises(DataError, match="--near-bound must be positive"):
+        parse(tmp_path / "flat", near_bound=-1.0)
+
+
+@pytest.mark.skipif(not CLIP.is_dir(), reason=f"RealEstate-10K clip not present at {CLIP}")
+def test_a_real_clip_parses_the_same_whatever_the_poses_units(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    scaled = tmp_path / "scaled"
+    shutil.copytree(CLIP, scaled)
+    rows = np.loadtxt(scaled / "CameraExtrinsics.csv", delimiter=",").reshape(-1, 4, 4)
+    rows[:, :3, 3] *= 7.0  # the same clip in other units: SLAM's scale is arbitrary
+    np.savetxt(scaled / "CameraExtrinsics.csv", rows.reshape(-1, 16), delimiter=",")
+    original, other = parse(CLIP, num_train_views=3), parse(scaled, num_train_views=3)
+    said = " ".join(capsys.readouterr().out.split())
+    assert said.count("the poses have no scale; the closest content is") == 2 and "--near-bound sets it" in said
+    # Equal up to the triangulation's own tolerances (its thresholds are not all scale-free): 0.1% here.
+    assert torch.allclose(original.cameras.camera_to_worlds, other.cameras.camera_to_worlds, rtol=3e-3, atol=1e-3)
+    # The found near bound is where the nearest content is: with it given, the cameras are the same.
+    near = float(said.split("the closest content is ")[1].split(" units")[0])
+    given = parse(CLIP, num_train_views=3, near_bound=near)
+    assert torch.allclose(given.cameras.camera_to_worlds, original.cameras.camera_to_worlds, rtol=2e-3, atol=2e-3)
+    # A near bound twice as far shrinks the scene by half about the cameras' average.
+    half = parse(CLIP, num_train_views=3, near_bound=2 * near)
+    assert torch.allclose(half.cameras.camera_to_worlds[..., 3], original.cameras.camera_to_worlds[..., 3] / 2,
+                          rtol=2e-3, atol=2e-3)
+    assert original.metadata["ndc"]["near"] == 1.0 and original.metadata["near_far"][0] == pytest.approx(1 / 0.75)
