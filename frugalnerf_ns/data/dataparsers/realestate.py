@@ -33,6 +33,8 @@ from frugalnerf_ns.data.scene_bounds import FAR_OVER_NEAR, near_far_from_points,
 from frugalnerf_ns.data.splits import ViewSplit, every_nth, load_split_table, spread_split
 
 REALESTATE_FILES = ("CameraIntrinsics.csv", "CameraExtrinsics.csv")
+FAR_MARGIN = 2.0
+"""The far bound found from points: this many times the 99th percentile of their depths."""
 
 
 @dataclass
@@ -47,7 +49,7 @@ class RealEstateDataParserConfig(FewShotDataParserConfig):
     the 1st percentile of the depths of the points triangulated between the training views."""
     far_bound: Optional[float] = None
     """Distance of the farthest content in the poses' units (only for the metric box when ndc is off); default: the
-    99th percentile of the points' depths, at least 100x the near bound (100x a given near bound)."""
+    99th percentile of the points' depths, doubled (100x a given near bound)."""
     bd_factor: float = 0.75
     """As for LLFF: the near bound lands at 1 / bd_factor, in front of NDC's near plane at 1."""
 
@@ -126,4 +128,6 @@ class RealEstate(DataParser):
             f"training cameras and the farthest {bounds[1]:.3g} ({sparse.num_points} points triangulated between "
             f"the {len(files)} training views); --near-bound sets it")
         near = bounds[0]
-        return near, far if far is not None else max(bounds[1], FAR_OVER_NEAR * near)
+        # Rooms: the points reach the far wall, and a box to 100x the near bound would leave a metric grid (the
+        # baselines' ndc False) little for the room; twice the farthest points leave room for what was not matched.
+        return near, far if far is not None else FAR_MARGIN * bounds[1]
