@@ -60,17 +60,20 @@ def opengl_c2w(w2c: np.ndarray) -> np.ndarray:
     return c2w
 
 
-def write_llff(root: Path, count: int = 10, factor: int = 2, forward_facing: bool = True) -> List[Tuple[float, float]]:
+def write_llff(root: Path, count: int = 10, factor: int = 2, forward_facing: bool = True,
+               principal_point: Tuple[float, float] | None = None) -> List[Tuple[float, float]]:
     """poses_bounds.npy at full resolution (factor x the images in images_<factor>/); ``forward_facing`` False:
-    the cameras circle the point (an arc of ~80 degrees)."""
+    the cameras circle the point (an arc of ~80 degrees); ``principal_point`` (full-size pixels; LLFF's rows cannot
+    hold it): where the photos' principal point is instead of the centre."""
+    cx, cy = (WIDTH / 2, HEIGHT / 2) if principal_point is None else (principal_point[0] / factor, principal_point[1] / factor)
     rows, pixels = [], []
     for K, w2c in opencv_cameras(count, forward_facing=forward_facing):
         c2w = opengl_c2w(w2c)  # columns: right, up, back
         llff = np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3]], axis=1)  # down, right, back
         hwf = np.array([HEIGHT * factor, WIDTH * factor, K[0, 0] * factor])
         rows.append(np.concatenate([np.concatenate([llff, hwf[:, None]], axis=1).ravel(), [1.0, 12.0]]))
-        # LLFF has one focal and the principal point at the centre.
-        K_centre = np.array([[K[0, 0], 0, WIDTH / 2], [0, K[0, 0], HEIGHT / 2], [0, 0, 1]])
+        # LLFF has one focal and the principal point at the centre (unless the photos have it elsewhere).
+        K_centre = np.array([[K[0, 0], 0, cx], [0, K[0, 0], cy], [0, 0, 1]])
         pixels.append(project(K_centre, w2c))
     root.mkdir(parents=True, exist_ok=True)
     np.save(root / "poses_bounds.npy", np.array(rows))

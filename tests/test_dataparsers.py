@@ -27,6 +27,8 @@ from tests import layout_fixtures as fx
 LAYOUTS = {
     "llff": (fx.write_llff, lambda d: LLFFDataParserConfig(data=d, downscale_factor=2, train_views=(1, 3, 5, 7, 9),
                                                             test_views=(0, 2, 4, 6, 8))),
+    "llff principal point": (lambda d: fx.write_llff(d, principal_point=(44.0, 26.0)), lambda d: LLFFDataParserConfig(
+        data=d, downscale_factor=2, principal_point=(44.0, 26.0), train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "llff photos only": (fx.write_llff_photos, lambda d: LLFFDataParserConfig(
         data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
     "dtu": (fx.write_dtu, lambda d: DTUDataParserConfig(data=d, train_views=(1, 3, 5, 7, 9), test_views=(0, 2, 4, 6, 8))),
@@ -247,7 +249,7 @@ def test_auto_detects_each_layout(layout, tmp_path):
     LAYOUTS[layout][0](tmp_path / layout)
     name, config_type = detect_layout(tmp_path / layout)
     assert config_type is type(LAYOUTS[layout][1](tmp_path))
-    factor = 2 if layout == "llff" else None  # the fixture writes images_2/
+    factor = 2 if layout.startswith("llff") and "photos" not in layout else None  # the fixture writes images_2/
     near = 1.0 if layout == "realestate" else None  # flat frames: no points to find it from
     outputs = AutoDataParserConfig(data=tmp_path / layout, downscale_factor=factor, near_bound=near).setup() \
         .get_dataparser_outputs("train")

@@ -51,6 +51,10 @@ class LLFFDataParserConfig(FewShotDataParserConfig):
     forward-facing split: a metric box around the training frusta up to the far bound (the baselines' box)."""
     bd_factor: float = 0.75
     """Scale the scene so the nearest bound lands at 1 / bd_factor (NeRF's LLFF loader)."""
+    principal_point: Optional[Tuple[float, float]] = None
+    """The photos' principal point (cx cy) in pixels of the full-size photos poses_bounds.npy describes (its H and W),
+    where it is not at their centre (LLFF's rows cannot hold it; a COLMAP run of one's own says it). Default: the
+    centre."""
     focus_box_scale: float = FOCUS_BOX_SCALE
     """Metric box of a split that is not forward-facing: a cube on the training cameras' focus whose half side is
     this many times the farthest training camera's distance to it (above 1: the cameras inside it)."""
@@ -100,9 +104,17 @@ class LLFF(DataParser):
             width, height = img.size
         full_height, full_width, full_focal = poses[0, :, 4]
         focal = float(full_focal) * width / float(full_width)
+        centre = (width / 2.0, height / 2.0)
+        if self.config.principal_point is not None:
+            cx, cy = self.config.principal_point
+            if not (0 < cx < full_width and 0 < cy < full_height):
+                raise DataError(f"--principal-point {cx} {cy} lies outside the {int(full_width)}x{int(full_height)} "
+                                f"photos poses_bounds.npy describes")
+            # NDC stays valid: its rays are converted from each pixel's ray, whatever the principal point.
+            centre = (cx * width / float(full_width), cy * height / float(full_height))
 
         return forward_facing_outputs(
-            files, c2w[indices], train_c2w, (focal, focal, width / 2.0, height / 2.0),
+            files, c2w[indices], train_c2w, (focal, focal, *centre),
             (width, height), (float(bounds.min()), float(bounds.max())), ndc, float(scale), box, transform,
         )
 
