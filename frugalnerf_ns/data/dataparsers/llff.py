@@ -110,8 +110,10 @@ class LLFF(DataParser):
             if not (0 < cx < full_width and 0 < cy < full_height):
                 raise DataError(f"--principal-point {cx} {cy} lies outside the {int(full_width)}x{int(full_height)} "
                                 f"photos poses_bounds.npy describes")
+            # The focal's ratio for both: a downscale by an exact factor drops an odd last row (753 -> 376).
             # NDC stays valid: its rays are converted from each pixel's ray, whatever the principal point.
-            centre = (cx * width / float(full_width), cy * height / float(full_height))
+            ratio = width / float(full_width)
+            centre = (cx * ratio, cy * ratio)
 
         return forward_facing_outputs(
             files, c2w[indices], train_c2w, (focal, focal, *centre),
