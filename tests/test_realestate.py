@@ -53,6 +53,11 @@ def test_short_clips_spread_their_views_and_long_ones_keep_vip_nerfs_frames(tmp_
     assert [int(p.stem) for p in parse(tmp_path / "short", "test", near_bound=1.0).image_filenames] == test
     fx.write_realestate(tmp_path / "long", count=40)
     assert [int(p.stem) for p in parse(tmp_path / "long", num_train_views=3, near_bound=1.0).image_filenames] == [10, 20, 30]
+    # A longer clip under a shared clip's name is not given that clip's split.
+    named = parse(tmp_path / "long", num_train_views=3, near_bound=1.0, scene_name="5aca87f95a9412c6")
+    assert [int(p.stem) for p in named.image_filenames] == [10, 20, 30]
+    short = parse(tmp_path / "short", num_train_views=3, near_bound=1.0, scene_name="5aca87f95a9412c6")
+    assert [int(p.stem) for p in short.image_filenames] == load_split_table()["realestate"]["clips"]["5aca87f95a9412c6"]["train_views"][3]
 
 
 def test_too_few_points_name_the_option(tmp_path):
@@ -67,14 +72,16 @@ def test_too_few_points_name_the_option(tmp_path):
 def test_a_real_clip_parses_the_same_whatever_the_poses_units(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     scaled = tmp_path / "scaled"
-    shutil.copytree(CLIP, scaled)
-    rows = np.loadtxt(scaled / "CameraExtrinsics.csv", delimiter=",").reshape(-1, 4, 4)
+    scaled.mkdir()
+    (scaled / "rgb").symlink_to(CLIP / "rgb")
+    shutil.copyfile(CLIP / "CameraIntrinsics.csv", scaled / "CameraIntrinsics.csv")  # not the data's read-only mode
+    rows = np.loadtxt(CLIP / "CameraExtrinsics.csv", delimiter=",").reshape(-1, 4, 4)
     rows[:, :3, 3] *= 7.0  # the same clip in other units: SLAM's scale is arbitrary
     np.savetxt(scaled / "CameraExtrinsics.csv", rows.reshape(-1, 16), delimiter=",")
     original, other = parse(CLIP, num_train_views=3), parse(scaled, num_train_views=3)
     said = " ".join(capsys.readouterr().out.split())
     assert said.count("the poses have no scale; the closest content is") == 2 and "--near-bound sets it" in said
-    # Equal up to the triangulation's own tolerances (its thresholds are not all scale-free): 0.1% here.
+    # Equal up to the triangulation's own tolerances (its thresholds are not all scale-free): 0.1% apart here.
     assert torch.allclose(original.cameras.camera_to_worlds, other.cameras.camera_to_worlds, rtol=3e-3, atol=1e-3)
     # The found near bound is where the nearest content is: with it given, the cameras are the same.
     near = float(said.split("the closest content is ")[1].split(" units")[0])
@@ -84,4 +91,3 @@ def test_a_real_clip_parses_the_same_whatever_the_poses_units(tmp_path, capsys, 
     half = parse(CLIP, num_train_views=3, near_bound=2 * near)
     assert torch.allclose(half.cameras.camera_to_worlds[..., 3], original.cameras.camera_to_worlds[..., 3] / 2,
                           rtol=2e-3, atol=2e-3)
-    assert original.metadata["ndc"]["near"] == 1.0 and original.metadata["near_far"][0] == pytest.approx(1 / 0.75)

@@ -14,7 +14,7 @@ from frugalnerf_ns.data.sparse_points import SparseDepth, TriangulationOptions
 from frugalnerf_ns.data.training_points import all_training_sparse_depth
 
 FAR_OVER_NEAR = 100.0
-"""The far bound is at least this many times the near one: a few points matched between 2-4 photos lie on the subject,
+"""Captures: the far bound is at least this many times the near one (RealEstate's rooms take their own rule): a few points matched between 2-4 photos lie on the subject,
 while the room around it reaches farther (COLMAP's bounds for the shared captures: the bird 125x, the juice box ~90x)."""
 MIN_POINTS_FOR_BOUNDS = 10
 """Fewer triangulated points than this say nothing about the scene's depth range."""

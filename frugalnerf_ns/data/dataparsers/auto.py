@@ -65,6 +65,8 @@ class AutoDataParserConfig(FewShotDataParserConfig):
     focus_box_scale: Optional[float] = None
     """LLFF and photos without cameras, splits that are not forward-facing: half the side of the box around the
     focus in farthest-camera distances (default 1.2)."""
+    principal_point: Optional[Tuple[float, float]] = None
+    """LLFF only: the photos' principal point in pixels of the full-size photos (default: their centre)."""
     near_bound: Optional[float] = None
     """RealEstate only: the closest content's distance in the poses' units (default: from the points triangulated
     between the training views)."""

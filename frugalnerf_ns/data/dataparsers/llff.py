@@ -198,7 +198,8 @@ def forward_facing_outputs(
     metadata = {"near_far": near_far}
     if ndc:
         scene_box = SceneBox(aabb=torch.tensor(NDC_AABB))
-        # NDC assumes one pinhole with the principal point at the centre (as NeRF and TensoRF do).
+        # NDC's warp needs one focal (NeRF and TensoRF's); rays are converted pixel by pixel, so an off-centre
+        # principal point only shifts which part of the NDC box the frames cover.
         metadata["ndc"] = {"focal": float(fx), "width": float(width), "height": float(height), "near": 1.0}
     elif box is not None:
         scene_box = SceneBox(aabb=box.float())

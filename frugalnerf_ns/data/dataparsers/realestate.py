@@ -100,7 +100,8 @@ class RealEstate(DataParser):
         table = load_split_table()["realestate"]
         clip = table.get("clips", {}).get(self.config.resolved_scene_name())
         protocol = {int(k): v for k, v in table["train_views"].items()}
-        if clip is not None:
+        # A clip's own split where the table names it and its frame count is the one the split was made for.
+        if clip is not None and max(clip["train_views"][2]) == num_frames - 1:
             train_views, test = {int(k): v for k, v in clip["train_views"].items()}, clip["test"]
         elif num_frames <= max(max(v) for v in protocol.values()):
             # Too short for ViP-NeRF's frames: training frames spread over the clip, the frames between them tested.
