@@ -52,6 +52,7 @@ def train(tree: Path, scene: str, views: int, steps: int, out: Path, cache: Path
                "--machine.seed", "42", "--pipeline.datamanager.seed", "42", "--max-num-iterations", str(steps),
                "--steps-per-save", "100000", *entry["parser"], *entry["views"][views]]
     env = {**os.environ, "PYTHONPATH": str(tree), "XDG_CACHE_HOME": str(cache)}
+    out.parent.mkdir(parents=True, exist_ok=True)
     with open(out.parent / f"{out.name}.log", "w") as log:
         subprocess.run(command, cwd=tree, env=env, stdout=log, stderr=subprocess.STDOUT, check=True)
     return next(out.rglob(f"step-{steps - 1:09d}.ckpt"))
