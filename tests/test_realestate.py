@@ -91,3 +91,30 @@ def test_a_real_clip_parses_the_same_whatever_the_poses_units(tmp_path, capsys, 
     half = parse(CLIP, num_train_views=3, near_bound=2 * near)
     assert torch.allclose(half.cameras.camera_to_worlds[..., 3], original.cameras.camera_to_worlds[..., 3] / 2,
                           rtol=2e-3, atol=2e-3)
+
+
+@pytest.mark.skipif(not CLIP.is_dir(), reason=f"RealEstate-10K clip not present at {CLIP}")
+def test_what_the_training_views_see_lies_beyond_ndcs_near_plane(tmp_path, monkeypatch):
+    """The clip walks through a doorway into a room: the wall beside frame 0 must lie beyond z = -1, where NDC's
+    rays start, or later views see it drawn in front of them."""
+    from frugalnerf_ns.data.scene_bounds import training_points
+    from frugalnerf_ns.geometry.camera_conventions import opencv_to_opengl
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    outputs = parse(CLIP, num_train_views=2)
+    model = outputs.cameras.camera_to_worlds.double().numpy()
+    train = load_split_table()["realestate"]["clips"][CLIP.name]["train_views"][2]
+    w2c = np.loadtxt(CLIP / "CameraExtrinsics.csv", delimiter=",").reshape(-1, 4, 4)
+    data = opencv_to_opengl(np.linalg.inv(w2c)[:, :3, :4])[train]
+    K = np.loadtxt(CLIP / "CameraIntrinsics.csv", delimiter=",").reshape(-1, 3, 3)[train]
+    sparse = training_points([CLIP / "rgb" / f"{i:03d}.png" for i in train], data,
+                             [(k[0, 0], k[1, 1], k[0, 2], k[1, 2]) for k in K], tmp_path / "points.npz", print)
+    # The similarity from the data's frame to the model's, from the two training cameras.
+    scale = np.linalg.norm(model[0, :, 3] - model[1, :, 3]) / np.linalg.norm(data[0, :, 3] - data[1, :, 3])
+    rotation = model[0, :, :3] @ data[0, :, :3].T
+    points = scale * sparse.points.double().numpy() @ rotation.T + (model[0, :, 3] - scale * rotation @ data[0, :, 3])
+    assert sparse.num_points > 20
+    # Content at the near bound straight ahead of any training camera lies beyond the plane (frame 0 stands 0.87
+    # behind the average camera: without the frame moved back its near content would lie behind the plane).
+    assert (model[:, 2, 3] - outputs.metadata["near_far"][0] <= -1.0 + 1e-6).all()
+    assert (points[:, 2] < -1.0).mean() >= 0.97  # the near bound is the 1st percentile of the depths

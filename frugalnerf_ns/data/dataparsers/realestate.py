@@ -4,7 +4,8 @@
     <scene>/CameraIntrinsics.csv        one row per frame: K (3x3, pixels of these frames) flattened, 9 values
     <scene>/CameraExtrinsics.csv        one row per frame: world-to-camera (4x4, OpenCV axes) flattened, 16 values
 
-Forward-facing, so modelled in NDC like LLFF. The poses are up to scale (SLAM): the closest content's distance,
+Forward-facing, so modelled in NDC like LLFF, in the frame of the average camera moved back to the rearmost training
+camera (a video walks forward: nothing a training camera sees may lie behind NDC's near plane). The poses are up to scale (SLAM): the closest content's distance,
 in the poses' units, comes from the points triangulated between the training views unless ``near_bound`` gives it.
 
 Splits: ViP-NeRF's for its 50-frame clips (training frames 10, 20, 30 ...; configs/splits.yaml); a shorter clip
@@ -90,6 +91,11 @@ class RealEstate(DataParser):
         scale = 1.0 / (near * self.config.bd_factor)
         c2w[:, :, 3] *= scale
         c2w = recenter(c2w)
+        # NDC's near plane (z = -1 here) must lie in front of everything a training camera sees. A camera walking
+        # into a room puts its first frames behind the average camera: the doorway 0.8 units in front of frame 0
+        # would lie behind the plane, and frame 0's rays, started at the plane, draw it in front of later views.
+        # So the frame's origin moves back along the viewing axis to the rearmost training camera.
+        c2w[:, 2, 3] -= c2w[views.train, 2, 3].max()
         k0 = K[0]
         return forward_facing_outputs(
             [images[i] for i in indices], c2w[indices], c2w[views.train], (k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2]),
