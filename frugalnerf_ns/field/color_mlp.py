@@ -158,8 +158,17 @@ class ColorMLP(nn.Module):
 def linear_relu(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
     """relu(x W^T + b): on the CPU oneDNN's matrix product with the ReLU applied as it writes (one pass less over
     the [n, hidden] result; a fern frame's 1.39 M rows 0.49-0.56 -> 0.39-0.47 s in a throw-away timing),
-    else the two steps. The same numbers either way (the ReLU of the same product)."""
+    else the two steps. The same numbers either way (the ReLU of the same product). oneDNN has no fused bfloat16
+    primitive on a CPU without AVX-512 (it raises when asked for one): there, and for any dtype it refused once,
+    the two steps."""
     fused = getattr(torch.ops.mkldnn, "_linear_pointwise", None) if x.device.type == "cpu" else None
-    if fused is not None and torch.backends.mkldnn.is_available():
-        return fused(x, weight, bias, "relu", [], "")
+    if fused is not None and torch.backends.mkldnn.is_available() and x.dtype not in _NO_FUSED_PRIMITIVE:
+        try:
+            return fused(x, weight, bias, "relu", [], "")
+        except RuntimeError:
+            _NO_FUSED_PRIMITIVE.add(x.dtype)
     return torch.relu_(nn.functional.linear(x, weight, bias))
+
+
+_NO_FUSED_PRIMITIVE: set = set()
+"""The dtypes oneDNN could not make a fused linear + ReLU primitive for on this CPU."""
