@@ -159,7 +159,7 @@ CAMERA_FILE_HINTS = {
                "`frugal-blender --capture True|False` picks the reading)",
     "Nerfstudio": "transforms.json's fl_x / cx and transform_matrix (camera-to-world, OpenGL axes)",
     "Colmap": "the COLMAP model's cameras against the images it was made from",
-    "RealEstate": "the clip's intrinsics (normalised by the frame size) and extrinsics (world-to-camera)",
+    "RealEstate": "the clip's intrinsics (3x3, in pixels of its frames) and extrinsics (world-to-camera)",
 }
 
 
