@@ -19,14 +19,19 @@ def test_repository_gate_covers_every_scene_with_its_cpu_preset():
     scenes_file, scenes = gate.load_gate(ROOT / "configs" / "gate.yaml")
     by_label = {s.label: s for s in scenes}
     assert set(by_label) == {"fern-2v", "fern-3v", "flower-2v", "horns-2v", "dtu_scan65-2v", "juice_box-3v", "juice_box-4v",
-                             "bird-3v"}
+                             "bird-3v", "fortress-2v", "re10k_5aca-2v"}
     assert len(by_label["horns-2v"].seeds) >= 2 and by_label["horns-2v"].max_spread is not None
     specs = gate.gate_specs(scenes_file, scenes)
     methods = {label: {s.method for s in group} for label, group in specs.items()}
     assert methods == {"fern-2v": {"frugalnerf-cpu"}, "fern-3v": {"frugalnerf-cpu"}, "flower-2v": {"frugalnerf-cpu"},
                        "horns-2v": {"frugalnerf-cpu"}, "dtu_scan65-2v": {"frugalnerf-dtu-cpu"},
                        "juice_box-3v": {"frugalnerf-cpu"}, "juice_box-4v": {"frugalnerf-cpu"},
-                       "bird-3v": {"frugalnerf-cpu"}}
+                       "bird-3v": {"frugalnerf-cpu"}, "fortress-2v": {"frugalnerf-cpu"},
+                       "re10k_5aca-2v": {"frugalnerf-cpu"}}
+    # a scene the presets were not tuned on, with its own principal point; a RealEstate-10K clip
+    assert specs["fortress-2v"][0].parser_args == ["frugal-llff", "--principal-point", "502.15", "381.09",
+                                                   "--train-views", "13", "28"]
+    assert specs["re10k_5aca-2v"][0].parser_args == ["frugal-realestate", "--num-train-views", "2"]
     assert specs["fern-3v"][0].parser_args[-2:] == ["--num-train-views", "3"]
     horns = specs["horns-2v"]
     assert [s.seed for s in horns] == by_label["horns-2v"].seeds
@@ -40,7 +45,7 @@ def test_repository_gate_covers_every_scene_with_its_cpu_preset():
     assert specs["juice_box-4v"][0].parser_args[-5:] == ["--train-views", "45", "13", "29", "46"]
     # the full circle: frames between the training views as tests
     assert specs["bird-3v"][0].parser_args[-9:] == ["--train-views", "0", "23", "46", "--test-views", "8", "15", "31", "38"]
-    assert len({s.key for group in specs.values() for s in group}) == 10
+    assert len({s.key for group in specs.values() for s in group}) == 12
 
 
 def _scene(max_spread=None, seeds=(1, 2)):

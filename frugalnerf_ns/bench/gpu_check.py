@@ -53,7 +53,7 @@ from frugalnerf_ns.bench.device_probes import (
 from frugalnerf_ns.bench.kernel_check import part_kernels
 from frugalnerf_ns.bench.report import write_report
 from frugalnerf_ns.run.stepping import run_steps
-from frugalnerf_ns.tools.sweep.grid import ROOT
+from frugalnerf_ns.config_files import outputs_dir, shared_data
 
 
 PARTS = ("presets", "paper", "speed", "grid_sample", "memory", "tcnn", "kernels")
@@ -369,10 +369,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
     parser.add_argument("--presets", nargs="+", help="presets for the presets part (default: all registered)")
     parser.add_argument("--steps", type=int, default=None, help="steps per preset (default 20; dry run 2)")
-    parser.add_argument("--fern", type=Path, default=ROOT.parent / "shared" / "data" / "llff" / "fern")
+    parser.add_argument("--fern", type=Path, default=shared_data() / "llff" / "fern")
     parser.add_argument("--scenes", nargs="+", choices=("procedural", "fern"), default=["procedural", "fern"],
                         help="scenes of the presets part (fern only where --fern exists)")
-    parser.add_argument("--out", type=Path, default=Path("outputs/gpu_check"))
+    parser.add_argument("--out", type=Path, default=outputs_dir("gpu_check"))
     args = parser.parse_args(argv)
 
     if not torch.cuda.is_available() and not args.dry_run:

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List
 
+from frugalnerf_ns.config_files import outputs_dir
 from frugalnerf_ns.bench.cli import worker_command
 from frugalnerf_ns.bench.report import markdown_table, write_report
 
@@ -85,7 +86,7 @@ def main(argv=None) -> None:
     parser.add_argument("--presets", nargs="+",
                         default=["frugalnerf", "frugalnerf-fast", "frugalnerf-quality", "frugalnerf-cpu", "frugalnerf-tiny"])
     parser.add_argument("--auto-grid", action="store_true", help="also measure every preset with its grid auto-sized")
-    parser.add_argument("--out", type=Path, default=Path("outputs/model_size.json"))
+    parser.add_argument("--out", type=Path, default=outputs_dir("model_size.json"))
     parser.add_argument("--worker", nargs=2, metavar=("PRESET", "AUTO"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:

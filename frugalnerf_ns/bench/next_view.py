@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+from frugalnerf_ns.config_files import outputs_dir
+
 
 def main(argv=None) -> list:
     parser = argparse.ArgumentParser(prog="frugalnerf-bench next-view", description=__doc__,
@@ -22,7 +24,7 @@ def main(argv=None) -> list:
     parser.add_argument("config", type=Path, help="config.yml of a trained FrugalNeRF run")
     parser.add_argument("--count", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=Path("outputs/benchmark_next_view.json"))
+    parser.add_argument("--out", type=Path, default=outputs_dir("benchmark_next_view.json"))
     args = parser.parse_args(argv)
     if not args.config.is_file():
         sys.exit(f"frugalnerf-bench next-view: error: {args.config} is not a file (pass <run>/config.yml)")

@@ -35,7 +35,7 @@ from frugalnerf_ns.data.dataparsers.auto import AutoDataParserConfig
 from frugalnerf_ns.data.input_checks import DataError
 from frugalnerf_ns.data.photo_poses import PoseEstimationOptions, estimate_cameras
 from frugalnerf_ns.geometry.camera_conventions import align_cameras, apply_similarity
-from frugalnerf_ns.tools.sweep.grid import ROOT
+from frugalnerf_ns.config_files import outputs_dir, shared_data
 
 
 def rotation_degrees(a: np.ndarray, b: np.ndarray) -> float:
@@ -151,13 +151,13 @@ def fmt(row: Dict, key: str, digits: int = 2, scale: float = 1.0) -> str:
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(prog="frugalnerf-bench cameras", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data-root", type=Path, default=ROOT.parent / "shared" / "data")
+    parser.add_argument("--data-root", type=Path, default=shared_data())
     parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     parser.add_argument("--startup-photos", type=Path, nargs="*", default=None,
                         help="photos to time the start-up with (default: fern's images_4 views 1 6 13 19, 1008x756)")
     parser.add_argument("--focal-factors", type=float, nargs="*", default=None,
                         help="also measure each case with the focal length fixed at these multiples of the parser's")
-    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "photo_cameras.json")
+    parser.add_argument("--out", type=Path, default=outputs_dir("photo_cameras.json"))
     args = parser.parse_args(argv)
     rows = []
     for name in args.cases:

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
+from frugalnerf_ns.config_files import outputs_dir
 from frugalnerf_ns.bench.report import markdown_table, write_report
 
 STAGES = ("data", "forward", "render_scale0", "render_scale1", "render_scale2", "geometric_adaptation", "losses",
@@ -48,7 +49,7 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--at-final-grid", action="store_true", help="profile at the preset's final grid size")
     parser.add_argument("--rows", type=int, default=15, help="operators listed")
-    parser.add_argument("--out", type=Path, default=Path("outputs/profile_step.json"))
+    parser.add_argument("--out", type=Path, default=outputs_dir("profile_step.json"))
     args = parser.parse_args(argv)
     source = args.load_config or args.data
     if source is None or not source.exists():

@@ -31,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+from frugalnerf_ns.config_files import outputs_dir
 from frugalnerf_ns.bench.report import markdown_table, write_report
 
 
@@ -45,7 +46,7 @@ def main(argv=None) -> list:
     parser.add_argument("config", type=Path, help="config.yml of a trained FrugalNeRF run")
     parser.add_argument("--frames", type=int, default=4, help="spiral frames timed per row")
     parser.add_argument("--views", type=int, default=3, help="test views timed per evaluation row (at most all)")
-    parser.add_argument("--out", type=Path, default=Path("outputs/benchmark_render.json"))
+    parser.add_argument("--out", type=Path, default=outputs_dir("benchmark_render.json"))
     parser.add_argument("--before", type=Path, help="source tree of an earlier commit: time its inference marcher too")
     parser.add_argument("--repeats", type=int, default=3, help="alternating rounds of the --before comparison")
     args = parser.parse_args(argv)

@@ -27,7 +27,7 @@ from PIL import Image
 
 from frugalnerf_ns.bench.report import markdown_table, write_report
 from frugalnerf_ns.scoring.metrics import composite
-from frugalnerf_ns.tools.sweep.grid import ROOT
+from frugalnerf_ns.config_files import outputs_dir
 
 
 def load_training_images(paths) -> List[np.ndarray]:
@@ -131,7 +131,7 @@ def main(argv: Optional[List[str]] = None) -> None:
     parser.add_argument("--data", type=Path, required=True, help="scene folder (any layout frugal-auto reads)")
     parser.add_argument("--views", type=int, nargs="+", default=[2, 8, 30, 100])
     parser.add_argument("--all-pairs-up-to", type=int, default=0, help="also time the old all-pairs matching up to N views")
-    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "startup_benchmark.json")
+    parser.add_argument("--out", type=Path, default=outputs_dir("startup_benchmark.json"))
     args = parser.parse_args(argv)
 
     from frugalnerf_ns.data.input_checks import DataError

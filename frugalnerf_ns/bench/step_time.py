@@ -40,7 +40,7 @@ def worker(config: Path, steps: int, warmup: int, kernels: str = "") -> Dict[str
     from nerfstudio.engine.optimizers import Optimizers
     from nerfstudio.utils.eval_utils import eval_setup
 
-    import frugalnerf_ns
+    from frugalnerf_ns.config_files import code_root
 
     trainer_config, pipeline, _, loaded_step = eval_setup(config, test_mode="val")
     pipeline.train()
@@ -65,7 +65,7 @@ def worker(config: Path, steps: int, warmup: int, kernels: str = "") -> Dict[str
         step(index)
     seconds = [step(index) for index in range(warmup, warmup + steps)]
     return {
-        "package": str(Path(frugalnerf_ns.__file__).parent.parent),
+        "package": str(code_root()),  # the copy this child imported
         "loaded_step": loaded_step,
         "grid": [int(r) for r in model.field.density_grid.resolution.tolist()],
         "kernels": str(getattr(model.config, "kernels", "")),
@@ -115,6 +115,7 @@ def main(argv: Optional[List[str]] = None) -> list:
         return []
 
     from frugalnerf_ns.bench.report import markdown_table, write_report
+    from frugalnerf_ns.config_files import code_root, outputs_dir
 
     parser = argparse.ArgumentParser(prog="frugalnerf-bench step", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", type=Path, help="config.yml of a trained FrugalNeRF run")
@@ -124,13 +125,13 @@ def main(argv: Optional[List[str]] = None) -> list:
     parser.add_argument("--rounds", type=int, default=3, help="measurements per tree (alternating with --before)")
     parser.add_argument("--torch-path", action="store_true",
                         help="also time this tree with --pipeline.model.kernels torch (the fused kernels' reference)")
-    parser.add_argument("--out", type=Path, default=Path("outputs/benchmark_step.json"))
+    parser.add_argument("--out", type=Path, default=outputs_dir("benchmark_step.json"))
     args = parser.parse_args(argv)
     if not args.config.is_file():
         sys.exit(f"benchmark_step: error: {args.config} is not a file (pass <run>/config.yml)")
     if args.before is not None and not (args.before / "frugalnerf_ns" / "__init__.py").is_file():
         sys.exit(f"benchmark_step: error: --before {args.before}: no frugalnerf_ns package there (pass a source tree)")
-    this_tree = Path(__file__).resolve().parents[2]
+    this_tree = code_root()
     trees = (([("before", args.before, "")] if args.before is not None else [])
              + ([("now, torch path", this_tree, "torch")] if args.torch_path else []) + [("now", this_tree, "")])
     results: Dict[str, List[Dict[str, object]]] = {name: [] for name, _, _ in trees}

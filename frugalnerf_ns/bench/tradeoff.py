@@ -29,7 +29,8 @@ import yaml
 
 from frugalnerf_ns.bench.report import write_report
 from frugalnerf_ns.tools.sweep.cli import run_sweep
-from frugalnerf_ns.tools.sweep.grid import ROOT, RunSpec, scene_data, scene_parser, seed_args
+from frugalnerf_ns.config_files import config_path, outputs_dir
+from frugalnerf_ns.tools.sweep.grid import RunSpec, scene_data, scene_parser, seed_args
 from frugalnerf_ns.tools.sweep.report import anytime_rows, anytime_table, pareto_front, plot  # noqa: F401 (pareto_front: tests)
 
 markdown = anytime_table
@@ -87,7 +88,7 @@ def plan_runs(args: argparse.Namespace, scene: str, views: int, data: Path, pars
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="frugalnerf-bench tradeoff", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", help="scene name from --config (gives data, parser options and preset)")
-    parser.add_argument("--config", type=Path, default=ROOT / "configs" / "benchmark_scenes.yaml")
+    parser.add_argument("--config", type=Path, default=config_path("benchmark_scenes.yaml"))
     parser.add_argument("--views", type=int, default=2, help="training views of --scene (a count its config defines)")
     parser.add_argument("--data", type=Path, help="scene folder (instead of --scene)")
     parser.add_argument("--parser", default="", help='dataparser subcommand and options, one string (with --data), '
@@ -103,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--tensorf-iterations", type=int, default=1500, help="0 skips the tensorf reference")
     parser.add_argument("--tensorf-rays", type=int, default=1024)
     parser.add_argument("--seed", type=int, help="nerfstudio's --machine.seed for every run (default: each method's)")
-    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "tradeoff")
+    parser.add_argument("--out", type=Path, default=outputs_dir("tradeoff"))
     return parser
 
 

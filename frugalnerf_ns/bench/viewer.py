@@ -19,6 +19,7 @@ from typing import Dict, List
 import torch
 from nerfstudio.utils.eval_utils import eval_setup
 
+from frugalnerf_ns.config_files import outputs_dir
 from frugalnerf_ns.bench.report import markdown_table, write_report
 
 MODES = {
@@ -78,7 +79,7 @@ def main(argv=None) -> None:
     parser.add_argument("configs", type=Path, nargs="+", help="config.yml of trained runs")
     parser.add_argument("--max-res", type=int, default=512, help="the viewer's Max res (nerfstudio default 512)")
     parser.add_argument("--repeats", type=int, default=2, help="renders per measurement; the fastest counts")
-    parser.add_argument("--out", type=Path, default=Path("outputs/viewer_benchmark.json"))
+    parser.add_argument("--out", type=Path, default=outputs_dir("viewer_benchmark.json"))
     args = parser.parse_args(argv)
     for config in args.configs:
         if not config.is_file():

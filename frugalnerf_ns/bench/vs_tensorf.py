@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
+from frugalnerf_ns.config_files import outputs_dir
 from frugalnerf_ns.bench.cli import worker_command
 from frugalnerf_ns.bench.report import markdown_table, write_report
 
@@ -143,12 +144,12 @@ def table(results: List[Dict[str, Any]]) -> str:
 
 def main(argv: Optional[List[str]] = None) -> None:
     parser = argparse.ArgumentParser(prog="frugalnerf-bench vs-tensorf", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", type=Path, default=Path("outputs/benchmark/scene"), help="nerfstudio scene (written if missing)")
+    parser.add_argument("--scene", type=Path, default=outputs_dir("benchmark", "scene"), help="nerfstudio scene (written if missing)")
     parser.add_argument("--iterations", type=int, default=300)
     parser.add_argument("--resolution", type=int, default=64, help="full-resolution grid per axis, both methods")
     parser.add_argument("--rays", type=int, default=1024, help="rays per batch, both methods")
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    parser.add_argument("--output", type=Path, default=Path("outputs/benchmark/benchmark_vs_tensorf.json"))
+    parser.add_argument("--output", type=Path, default=outputs_dir("benchmark", "benchmark_vs_tensorf.json"))
     parser.add_argument("--worker", choices=METHODS, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 

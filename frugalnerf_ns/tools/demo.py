@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence
 
+from frugalnerf_ns.config_files import outputs_dir
 from frugalnerf_ns.data.procedural_scene import constant_color_psnr, write_procedural_scene
 
 
@@ -48,8 +49,8 @@ def train_and_eval(
 
 def main(argv: Optional[Sequence[str]] = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--scene", type=Path, default=Path("outputs/demo-scene"), help="where the scene is written")
-    parser.add_argument("--output-dir", type=Path, default=Path("outputs"), help="nerfstudio output folder")
+    parser.add_argument("--scene", type=Path, default=outputs_dir("demo-scene"), help="where the scene is written")
+    parser.add_argument("--output-dir", type=Path, default=outputs_dir(), help="nerfstudio output folder")
     parser.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
     args = parser.parse_args(argv)
 

@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 from frugalnerf_ns.tools.sweep import report
-from frugalnerf_ns.tools.sweep.grid import ROOT, GridError, RunSpec, load_grid
+from frugalnerf_ns.config_files import code_root as package_parent, outputs_dir
+from frugalnerf_ns.tools.sweep.grid import GridError, RunSpec, load_grid
 from frugalnerf_ns.tools.sweep.runner import execute, python_path_first
 from frugalnerf_ns.tools.sweep.store import ResultStore
 
@@ -49,7 +50,7 @@ def _init_ray(address: Optional[str]):
     else:
         # Local workers import this checkout too (a sweep started from a git worktree runs the worktree's
         # runner; the runs' own code is pinned by ``execute``'s code_root either way).
-        path = python_path_first(ROOT)
+        path = python_path_first(package_parent())
         ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, logging_level=logging.WARNING,
                  log_to_driver=False, runtime_env={"env_vars": {"PYTHONPATH": path}})
     return ray, True
@@ -79,7 +80,7 @@ def run_sweep(
         ray, started = _init_ray(address)
         try:
             _schedule(ray, [by_key[k] for k in todo], out, store, cpus_per_run, gpus_per_run, progress_every, say,
-                      Path(code_root or ROOT))
+                      Path(code_root or package_parent()))
         finally:
             if started:
                 ray.shutdown()
@@ -173,7 +174,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     except GridError as err:
         print(f"frugalnerf-sweep: {err}", file=sys.stderr)
         return 1
-    out = args.out or Path("outputs") / "sweep" / args.grid.stem
+    out = args.out or outputs_dir("sweep", args.grid.stem)
     if not (args.address or os.environ.get("RAY_ADDRESS")):
         missing = sorted({s.data for s in specs if not Path(s.data).is_dir()})
         if missing:

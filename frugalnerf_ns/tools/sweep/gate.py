@@ -36,12 +36,15 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
 import yaml
 
-from frugalnerf_ns.tools.sweep.grid import ROOT, SCENE_PRESET, GridError, RunSpec, expand
+from frugalnerf_ns.config_files import CheckoutRequired, checkout_root, config_path, outputs_dir, require_checkout
+from frugalnerf_ns.tools.sweep.grid import SCENE_PRESET, GridError, RunSpec, expand
 
 METRICS = ("psnr", "ssim", "lpips")
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False}
-GATE_FILE = ROOT / "configs" / "gate.yaml"
-BASELINE_FILE = ROOT / "configs" / "gate_baseline.yaml"
+GATE_FILE = config_path("gate.yaml")
+BASELINE_FILE = config_path("gate_baseline.yaml")
+# The checkout whose git history names the runs' code (None for an installed package: main() stops in one line).
+ROOT = checkout_root()
 
 
 class GateError(ValueError):
@@ -322,7 +325,7 @@ def against_baseline(commit: str, every: Sequence[RunSpec], specs: Mapping[str, 
     from frugalnerf_ns.tools.sweep.cli import run_sweep
     from frugalnerf_ns.tools.sweep.store import ResultStore
 
-    out = (out or ROOT / "outputs" / "gate" / commit).resolve()
+    out = (out or outputs_dir("gate", commit)).resolve()
     done = ResultStore(out / "results.jsonl").latest([s.key for s in every])
     todo = [s for s in every if done.get(s.key, {}).get("status") != "ok"]
     code_root = checkout(commit) if todo else None
@@ -349,6 +352,11 @@ def main(argv: Optional[List[str]] = None) -> int:
                         "(a git worktree) instead of the baseline file: both sides on this machine")
     parser.add_argument("--against-out", type=Path, help="runs folder of --against (default outputs/gate/<REV's commit>)")
     args = parser.parse_args(argv)
+    try:
+        require_checkout("frugalnerf-gate", "its git history names the code each run trained")
+    except CheckoutRequired as err:
+        print(f"frugalnerf-gate: {err}", file=sys.stderr)
+        return 2
     if args.against and args.record:
         print("frugalnerf-gate: --record writes this code's runs into the baseline file and --against compares with "
               "another commit's runs: use one of them", file=sys.stderr)
@@ -382,7 +390,7 @@ def main(argv: Optional[List[str]] = None) -> int:
               file=sys.stderr)
         return 2
     version = code_version()
-    out = (args.out or ROOT / "outputs" / "gate" / version).resolve()
+    out = (args.out or outputs_dir("gate", version)).resolve()
     every = [spec for group in specs.values() for spec in group]
     if args.list:
         latest = ResultStore(out / "results.jsonl").latest([s.key for s in every])

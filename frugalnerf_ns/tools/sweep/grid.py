@@ -14,7 +14,7 @@ A grid file (``configs/sweeps/*.yaml``)::
     anytime_every: null                     # also score a checkpoint every N steps
 
 A scene in the scenes file gives ``data`` (relative to the file's ``data_root``, itself relative to the file;
-without one, the repository root), the
+without one, the repository root, or the current folder for an installed package), the
 dataparser and its options (``parser``), the options that pick each view count (``views``), extra dataparser
 options for nerfstudio's methods (``baseline_options``) and its CPU preset (``preset``).
 """
@@ -29,7 +29,8 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 import yaml
 
-ROOT = Path(__file__).resolve().parents[3]  # the checkout: frugalnerf_ns/tools/sweep/grid.py
+from frugalnerf_ns.config_files import checkout_root
+
 SCENE_PRESET = "scene-preset"
 
 
@@ -105,10 +106,10 @@ def load_scenes(path: Path) -> Dict[str, Any]:
 
 def data_root_of(scenes_file: Path, table: Mapping[str, Any], data_root: Optional[Path] = None) -> Path:
     """Where the scenes' ``data`` paths start: ``data_root`` if given, else the file's own ``data_root``
-    (relative to the file), else the repository root."""
+    (relative to the file), else the repository root (the current folder for an installed package)."""
     if data_root is not None:
         return Path(data_root).resolve()
-    root = Path(table.get("data_root") or ROOT)
+    root = Path(table.get("data_root") or checkout_root() or Path.cwd())
     return root if root.is_absolute() else (Path(scenes_file).parent / root).resolve()
 
 

@@ -25,7 +25,8 @@ import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from frugalnerf_ns.tools.sweep.grid import ROOT, RunSpec
+from frugalnerf_ns.config_files import code_root as package_parent
+from frugalnerf_ns.tools.sweep.grid import RunSpec
 
 QUIET = ["--vis", "tensorboard", "--steps-per-eval-image", "1000000", "--steps-per-eval-batch", "1000000",
          "--steps-per-eval-all-images", "1000000"]
@@ -70,7 +71,12 @@ def last_error_line(log: Path) -> str:
     return lines[-1][:300] if lines else "empty log"
 
 
-def git_commit(root: Path = ROOT) -> Optional[str]:
+def git_commit(root: Optional[Path] = None) -> Optional[str]:
+    """The short commit of the checkout at ``root`` (default: the one this code runs from); None when ``root`` is no
+    checkout's root (an installed package: a git repository around site-packages is not its code's commit)."""
+    root = Path(root or package_parent())
+    if not (root / ".git").exists():  # a folder for a clone, a file for a worktree
+        return None
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root, timeout=10)
         return out.stdout.strip() or None
@@ -141,7 +147,7 @@ def execute(spec: RunSpec, out: Path, threads: Optional[int] = None, code_root: 
     """Train and score one run with the code of ``code_root`` (default: this module's checkout); its record
     (status "ok" with metrics, or "failed" with the error)."""
     out = Path(out)
-    root = Path(code_root) if code_root else ROOT
+    root = Path(code_root) if code_root else package_parent()
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     log = logs / f"{spec.key}.log"
