@@ -27,7 +27,7 @@ def main(argv=None) -> Path:
     if not args.config.is_file():
         sys.exit(f"render_spiral: error: {args.config} is not a file (pass <run>/config.yml)")
 
-    from frugalnerf_ns.tools.ffmpeg_path import provide_ffmpeg
+    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
     from nerfstudio.scripts.render import SpiralRender
 
     provide_ffmpeg()  # this script writes a video like ns-render: the bundled ffmpeg when PATH has none

@@ -8,7 +8,7 @@ from nerfstudio.cameras.rays import RayBundle
 
 from frugalnerf_ns.field.far_background import FarBackground, direction_to_latlong, shell_distance
 from frugalnerf_ns.geometry.scene_analysis import far_shell
-from frugalnerf_ns.model.batch import TrainBatch
+from frugalnerf_ns.batch import TrainBatch
 from tests.helpers import tiny_model
 
 

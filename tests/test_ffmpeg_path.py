@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from frugalnerf_ns.tools.ffmpeg_path import bundled_ffmpeg
+from frugalnerf_ns.ffmpeg_path import bundled_ffmpeg
 
 PLANTED = "#!/bin/sh\necho planted > {marker}\n"
 
@@ -57,7 +57,7 @@ def test_video_commands_get_the_bundled_ffmpeg_from_a_private_folder_at_the_end_
     env, marker, bin_dir, link_target = planted
     out = run_python(
         "import os, shutil, subprocess, sys\n"
-        "from frugalnerf_ns.tools.ffmpeg_path import provide_ffmpeg_for_video_commands\n"
+        "from frugalnerf_ns.ffmpeg_path import provide_ffmpeg_for_video_commands\n"
         "found = provide_ffmpeg_for_video_commands('ns-render')\n"
         "subprocess.run(['ls', '/'], stdout=subprocess.DEVNULL)\n"
         "subprocess.run(['ffmpeg', '-version'], stdout=subprocess.DEVNULL)\n"
@@ -80,7 +80,7 @@ def test_video_commands_get_the_bundled_ffmpeg_from_a_private_folder_at_the_end_
 
 def test_other_commands_get_nothing(planted, monkeypatch):
     env, _, bin_dir, _ = planted
-    from frugalnerf_ns.tools.ffmpeg_path import provide_ffmpeg_for_video_commands
+    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg_for_video_commands
 
     for name, value in env.items():
         monkeypatch.setenv(name, value)

@@ -113,7 +113,7 @@ def _seeded_step(model, ray_bundle, batch):
 def test_colours_no_loss_reads_are_not_shaded_and_no_loss_or_gradient_changes(model_and_batch):
     import copy
 
-    from frugalnerf_ns.model.batch import RAY_GROUP
+    from frugalnerf_ns.batch import RAY_GROUP
 
     model, bundle, batch = model_and_batch
 

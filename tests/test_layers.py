@@ -4,15 +4,17 @@ fails this test (lazy imports inside functions and typing-only imports count too
 only later). The package's ``__init__`` says what each room holds.
 
 The floors, bottom to top:
-0. the package root: one-line errors, progress lines, keyed caches, the config tables, old module names;
+0. the package root (its ``__init__`` too): one-line errors, progress lines, keyed caches, the config tables and
+   where files are, old module names, the typed batches the datamanager hands the model, the start-up hooks
+   (checkpoint loading, a private ffmpeg);
 1. geometry (rays, NDC, reprojection, poses and paths, scene analysis, epipolar checks), field (grids, field,
-   colour MLP), scoring (metrics, offline LPIPS, pseudo-depth summary);
-2. model: config, rendering, objective, losses, geometric adaptation, batches, training schedule, scoring;
-3. data: datamanager, patches, training views, dataset, dataparsers, sparse points, COLMAP points, monocular depth,
-   splits, the procedural scene;
-4. tools: the offline evaluator, the demo, video rendering, ffmpeg, the sweep and the gate;
-5. run: trainer, pipeline, checkpoints, presets, options;
-6. bench: the measurements behind ``frugalnerf-bench`` (they build presets' pipelines, so they sit above run).
+   colour MLP), scoring (metrics, offline LPIPS, pseudo-depth summary, coverage and next-view scores);
+2. model (config, rendering, objective, losses, geometric adaptation, training schedule, scoring) and, beside it,
+   data (datamanager, patches, training views, dataset, dataparsers, sparse points, COLMAP points, monocular
+   depth, splits, the procedural scene): neither imports the other, they meet in the batch types below them;
+3. tools: the offline evaluator, the demo, video rendering, the sweep and the gate;
+4. run: trainer, pipeline, checkpoints, presets, options;
+5. bench: the measurements behind ``frugalnerf-bench`` (they build presets' pipelines, so they sit above run).
 """
 
 from __future__ import annotations
@@ -23,14 +25,15 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "frugalnerf_ns"
 
 FLOORS = {
-    0: "errors progress cache config_files legacy_names configs",
+    0: "__init__ errors progress cache config_files legacy_names configs batch checkpoint_compat ffmpeg_path",
     1: "geometry field scoring",
-    2: "model",
-    3: "data",
-    4: "tools",
-    5: "run",
-    6: "bench",
+    2: "model data",
+    3: "tools",
+    4: "run",
+    5: "bench",
 }
+# Rooms on one floor that must not import each other either.
+APART = [("model", "data")]
 FLOOR = {name: floor for floor, names in FLOORS.items() for name in names.split()}
 
 
@@ -54,7 +57,7 @@ def imported_rooms(tree: ast.AST):
 
 
 def modules():
-    return [p for p in sorted(PACKAGE.rglob("*.py")) if p.name != "__init__.py" or p.parent != PACKAGE]
+    return sorted(PACKAGE.rglob("*.py"))
 
 
 def upward_imports(sources):
@@ -74,6 +77,26 @@ def test_every_module_has_a_floor():
 
 def test_no_module_imports_from_a_floor_above_its_own():
     assert upward_imports((p, p.read_text()) for p in modules()) == []
+
+
+def sideways_imports(sources):
+    """Every import between two rooms of a pair in ``APART``, as ``file:line`` lines."""
+    apart = {frozenset(pair) for pair in APART}
+    found = []
+    for path, text in sources:
+        me = room(path)
+        for line, other in imported_rooms(ast.parse(text)):
+            if frozenset((me, other)) in apart:
+                found.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({me}) imports {other}")
+    return found
+
+
+def test_the_model_and_the_data_do_not_import_each_other():
+    assert sideways_imports((p, p.read_text()) for p in modules()) == []
+    # The check itself: the datamanager importing the model's batch module, as it once did.
+    text = "from frugalnerf_ns.model.batch import TrainBatch\n"
+    assert sideways_imports([(PACKAGE / "data" / "datamanager.py", text)]) == [
+        "frugalnerf_ns/data/datamanager.py:1 (data) imports model"]
 
 
 def test_an_upward_import_is_caught():
@@ -144,6 +167,21 @@ def test_every_room_says_what_it_holds_and_its_floor():
     for room_dir in rooms:
         doc = ast.get_docstring(ast.parse((room_dir / "__init__.py").read_text())) or ""
         assert doc.startswith(f"Floor {FLOOR[room_dir.name]}, "), room_dir.name
+
+
+def unnamed_modules(package: Path):
+    """The modules and subpackages of ``package`` its ``__init__`` docstring does not name as ``name`` (modules)
+    or ``name/`` (subpackages)."""
+    doc = ast.get_docstring(ast.parse((package / "__init__.py").read_text())) or ""
+    names = [p.stem for p in package.glob("*.py") if p.name != "__init__.py"]
+    names += [f"{p.name}/" for p in package.iterdir() if (p / "__init__.py").is_file()]
+    return sorted(name for name in names if f"``{name}``" not in doc)
+
+
+def test_every_package_docstring_names_each_of_its_modules():
+    packages = [PACKAGE, *sorted(p.parent for p in PACKAGE.rglob("*/__init__.py"))]
+    assert {package.relative_to(PACKAGE.parent).as_posix(): unnamed_modules(package) for package in packages
+            if unnamed_modules(package)} == {}
 
 
 MAX_MODULE_LINES = 450

@@ -8,7 +8,7 @@ import torch
 from nerfstudio.cameras.rays import RayBundle
 
 from frugalnerf_ns.model import objective
-from frugalnerf_ns.model.batch import EvalBatch, TrainBatch
+from frugalnerf_ns.batch import EvalBatch, TrainBatch
 from frugalnerf_ns.model.frugalnerf import scale_suffix
 from tests.helpers import tiny_model
 

@@ -9,7 +9,7 @@ from nerfstudio.cameras.rays import RayBundle
 from frugalnerf_ns.field.outer_space import FAR_BOX_HALVES, OuterSpace
 from frugalnerf_ns.geometry.contraction import contract, contract_along_ray, disparity_bins, interval_distortion, uncontract
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
-from frugalnerf_ns.model.batch import TrainBatch
+from frugalnerf_ns.batch import TrainBatch
 from tests.helpers import tiny_model
 
 BOX = torch.tensor([[-1.0, -2.0, -0.5], [3.0, 2.0, 1.5]])  # centre (1, 0, 0.5), half sizes (2, 2, 1)

@@ -49,7 +49,7 @@ def bundled_ffmpeg_only(monkeypatch):
     """In this process, what a video command gets from the plugin: the bundled ffmpeg, none from the system."""
     from nerfstudio.scripts import render  # noqa: F401  (imported as ns-render does, before any pipeline)
 
-    from frugalnerf_ns.tools.ffmpeg_path import provide_ffmpeg
+    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
 
     monkeypatch.setenv("PATH", str(ROOT / "no-programs-here"))  # restored after the test
     assert provide_ffmpeg() is not None

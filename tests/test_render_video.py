@@ -32,7 +32,7 @@ def test_ns_render_spiral_renders_the_scene_path_upright_at_full_scale(trained_r
     from nerfstudio.scripts import render  # imported as ns-render does: FrugalPipeline then teaches it
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from frugalnerf_ns.tools.ffmpeg_path import provide_ffmpeg
+    from frugalnerf_ns.ffmpeg_path import provide_ffmpeg
 
     monkeypatch.setenv("PATH", os.environ.get("PATH", ""))  # restored after the test
     provide_ffmpeg()  # what the ns-render command gets from the plugin (ns-render checks for ffmpeg first)

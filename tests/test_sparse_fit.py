@@ -1,11 +1,11 @@
-"""scoring/sparse_fit.py (scripts/diagnostics/sparse_depth_fit.py): a run's depth against the sparse points."""
+"""bench/sparse_fit.py (scripts/diagnostics/sparse_depth_fit.py): a run's depth against the sparse points."""
 
 import math
 
 import torch
 
-from frugalnerf_ns.model.losses import inverse_depth_loss
-from frugalnerf_ns.scoring.sparse_fit import agreement_by_depth, depth_agreement, inverse_depth_term
+from frugalnerf_ns.bench.sparse_fit import agreement_by_depth, depth_agreement
+from frugalnerf_ns.model.losses import inverse_depth_loss, inverse_depth_term
 
 
 def test_agreement_counts_the_points_off_by_more_than_ten_percent_and_reports_the_loss_term():

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -27,10 +28,15 @@ pytestmark = pytest.mark.e2e
 def installed(tmp_path_factory):
     """(site folder, an unrelated working folder, the environment that imports the wheel's copy)."""
     base = tmp_path_factory.mktemp("wheel")
-    site, elsewhere = base / "site", base / "elsewhere"
+    source, site, elsewhere = base / "source", base / "site", base / "elsewhere"
     elsewhere.mkdir()
+    # Built from a copy of what the wheel is made of: setuptools builds in the source folder (build/, egg-info).
+    for name in ("frugalnerf_ns", "configs"):
+        shutil.copytree(ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(ROOT / name, source / name)
     built = subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-                            "--disable-pip-version-check", "--target", str(site), str(ROOT)],
+                            "--disable-pip-version-check", "--target", str(site), str(source)],
                            capture_output=True, text=True, cwd=elsewhere, timeout=600)
     assert built.returncode == 0, built.stderr[-2000:]
     env = {**os.environ, "PYTHONPATH": str(site)}

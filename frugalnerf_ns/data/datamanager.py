@@ -41,7 +41,7 @@ from frugalnerf_ns.data.training_views import (
 )
 from frugalnerf_ns.geometry.novel_views import nearest_other_view, spiral_focus_depth
 from frugalnerf_ns.geometry.scene_analysis import CameraLayout, SceneType, uninformative_view_notes
-from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch, concatenate_ray_bundles, ray_groups
+from frugalnerf_ns.batch import RAY_GROUP, EvalBatch, TrainBatch, concatenate_ray_bundles, ray_groups
 from frugalnerf_ns.scoring.metrics import composite
 
 

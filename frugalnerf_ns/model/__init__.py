@@ -1,8 +1,9 @@
 """Floor 2, the model: FrugalNeRF as a nerfstudio ``Model`` (``frugalnerf``) and its settings (``config``);
 rendering every scale of a ray bundle (``rendering``); the training objective and its terms (``objective``,
-``losses``, ``geometric_adaptation``: the paper's equations, each in one named function); the typed batches the
-datamanager hands in (``batch``); the schedule of upsampling and alpha masks (``training_schedule``); test-view
-scoring (``image_scoring``). Imports the floors below (root, geometry, field, scoring), never data or run.
+``losses``, ``geometric_adaptation``: the paper's equations, each in one named function); the schedule of
+upsampling and alpha masks (``training_schedule``); test-view scoring (``image_scoring``). Imports the floors
+below (the root with the batch types the datamanager hands in, geometry, field, scoring), never data (beside it on
+floor 2), tools or run.
 """
 
 from typing import Any

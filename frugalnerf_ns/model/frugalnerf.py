@@ -28,7 +28,7 @@ from torch.profiler import record_function
 
 from frugalnerf_ns.errors import UserError
 from frugalnerf_ns.model import objective
-from frugalnerf_ns.model.batch import RAY_GROUP, EvalBatch, TrainBatch
+from frugalnerf_ns.batch import RAY_GROUP, EvalBatch, TrainBatch
 from frugalnerf_ns.field.far_background import FarBackground
 from frugalnerf_ns.field.outer_space import OuterSpace, depth_through_outer_space
 from frugalnerf_ns.field.grid_sizes import log_linear_voxel_counts, resolution_for_voxels, spanning_stride

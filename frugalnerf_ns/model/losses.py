@@ -16,7 +16,6 @@ from torch import Tensor
 
 from frugalnerf_ns.field.tensorial import strided_view
 from frugalnerf_ns.geometry.reprojection import PseudoDepth
-from frugalnerf_ns.scoring.sparse_fit import inverse_depth_term
 
 
 def multiscale_color_loss(
@@ -273,6 +272,12 @@ def depth_smoothness_loss(depth: Float[Tensor, "patches 2 2"]) -> Float[Tensor, 
     horizontal = (depth[:, :, 1:] - depth[:, :, :-1]) ** 2
     vertical = (depth[:, 1:, :] - depth[:, :-1, :]) ** 2
     return horizontal.sum(dim=(1, 2)).mean() + vertical.sum(dim=(1, 2)).mean()
+
+
+def inverse_depth_term(rendered: Tensor, target: Tensor, min_depth: float = 1e-3) -> Tensor:
+    """L_sd's term per observation (paper Eq. 11), (1/rendered - 1/target)^2 with depths clamped at ``min_depth``;
+    ``inverse_depth_loss`` is its mean, and the sparse-depth diagnostic (``bench/sparse_fit.py``) sums it by band."""
+    return (1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2
 
 
 def inverse_depth_loss(rendered: Float[Tensor, " rays"], target: Float[Tensor, " rays"], min_depth: float = 1e-3) -> Tensor:

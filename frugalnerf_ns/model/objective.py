@@ -17,7 +17,7 @@ from torch import Tensor
 from torch.profiler import record_function
 
 from frugalnerf_ns.model import losses
-from frugalnerf_ns.model.batch import NOVEL_RAYS, SPARSE_RAYS, TRAIN_RAYS, EvalBatch, TrainBatch
+from frugalnerf_ns.batch import NOVEL_RAYS, SPARSE_RAYS, TRAIN_RAYS, EvalBatch, TrainBatch
 from frugalnerf_ns.field.outer_space import OuterSpace
 from frugalnerf_ns.field.radiance_field import FrugalNeRFField
 from frugalnerf_ns.model.geometric_adaptation import (

@@ -9,7 +9,7 @@ training views. The depth compared is the one L_sd compares (``objective.depth_t
 depth, and where the scene has a far background sphere, that sphere's distance in the share the field lets
 through). Printed per run and training view: observations, the relative depth difference |rendered - point| /
 point (median, p90, share above 10 %), and the mean of L_sd's own term (1/rendered - 1/point)^2; then the same per
-quarter of the points' depth with that quarter's share of the term (``scoring/sparse_fit.py``), and per track
+quarter of the points' depth with that quarter's share of the term (``bench/sparse_fit.py``), and per track
 length (the number of training views a point is seen in). A run that scores
 well on the test views yet lies far from many points says those points are wrong; a run that fits them closely
 and scores worse says fitting them costs it.
@@ -87,7 +87,7 @@ def main(argv=None) -> None:
 
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from frugalnerf_ns.scoring.sparse_fit import agreement_by_depth, depth_agreement
+    from frugalnerf_ns.bench.sparse_fit import agreement_by_depth, depth_agreement
     from frugalnerf_ns.tools.offline_tools import patch_torchmetrics_lpips
 
     patch_torchmetrics_lpips()

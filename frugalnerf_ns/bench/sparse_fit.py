@@ -1,5 +1,5 @@
 """How closely a run's depth meets the sparse points L_sd pulls it to: the summary printed by
-``scripts/diagnostics/sparse_depth_fit.py``. Pure torch."""
+``scripts/diagnostics/sparse_depth_fit.py``, with L_sd's own term (``model.losses.inverse_depth_term``). Pure torch."""
 
 from __future__ import annotations
 
@@ -7,11 +7,7 @@ from typing import Dict, List
 
 import torch
 
-
-def inverse_depth_term(rendered: torch.Tensor, target: torch.Tensor, min_depth: float = 1e-3) -> torch.Tensor:
-    """L_sd's term per observation (paper Eq. 11), (1/rendered - 1/target)^2 with depths clamped at ``min_depth``;
-    ``model.losses.inverse_depth_loss`` is its mean (here, below the model, so this diagnostic summary can read it)."""
-    return (1.0 / rendered.clamp_min(min_depth) - 1.0 / target.clamp_min(min_depth)) ** 2
+from frugalnerf_ns.model.losses import inverse_depth_term
 
 
 def depth_agreement(rendered: torch.Tensor, target: torch.Tensor) -> Dict[str, float]:
