@@ -144,14 +144,12 @@ def test_the_fused_outer_space_composites_as_torch_does():
 
 
 @needs_warp
-@pytest.mark.parametrize("stretched", [False, True])
 @pytest.mark.parametrize("scale", [0, 1, 2])
-def test_the_fused_feature_read_gives_the_planes_colours(scale, stretched, monkeypatch):
+def test_the_fused_feature_read_gives_the_planes_colours(scale, monkeypatch):
     from frugalnerf_ns.field import radiance_field
 
     field = FrugalNeRFField(AABB_FEATURES, (21, 26, 19), density_components=(2, 2, 2), appearance_components=(5, 3, 2),
-                            mlp_hidden_dim=16, mlp_implementation="torch", lower_scale_reading="stretched" if stretched
-                            else "aligned")
+                            mlp_hidden_dim=16, mlp_implementation="torch")
     with torch.no_grad():
         for tensor in [*field.appearance_grid.planes, *field.appearance_grid.lines]:
             tensor.normal_(0.0, 1.5)
@@ -166,9 +164,9 @@ def test_the_fused_feature_read_gives_the_planes_colours(scale, stretched, monke
         assert torch.allclose(ours, reference, atol=1e-5)
         # The features the kernel reads, against the planes' and lines' reads they replace.
         coords = field.normalize(positions)
-        products = torch.cat(field.appearance_grid.plane_line_products(coords, field.stride(scale), stretched), dim=-1)
+        products = torch.cat(field.appearance_grid.plane_line_products(coords, field.stride(scale)), dim=-1)
         key = ("channels last", field.stride(scale))
-        mapped = field.appearance_grid.view_coords(coords, field.stride(scale), stretched)
+        mapped = field.appearance_grid.view_coords(coords, field.stride(scale))
         fused = fused_kernels.vm_features(wp, field._channels_last[key][1], mapped)
         assert torch.allclose(fused, products, atol=1e-5) and float(products.std()) > 0.5
         # A parameter changed after the first read: the channels-last copies follow it.
@@ -190,7 +188,7 @@ def test_the_feature_read_is_compiled_for_each_set_of_component_counts():
         with torch.no_grad():
             for tensor in [*grid.planes, *grid.lines]:
                 tensor.normal_(0.0, 1.0)
-            expected = torch.cat(grid.plane_line_products(coords, 1, False), dim=-1)
+            expected = torch.cat(grid.plane_line_products(coords, 1), dim=-1)
             ours = fused_kernels.vm_features(wp, fused_kernels.channels_last(*grid.scale_views(1)), coords)
         assert ours.shape == (700, sum(components)) and torch.allclose(ours, expected, atol=1e-5)
         reads[components] = fused_kernels._state[("grid_reads", components)]

@@ -1,6 +1,6 @@
 """The fused training reads (NVIDIA Warp, on the CPU) against the torch reads of the planes and lines they replace:
-density and appearance features, values and every plane's and line's gradient, at every stride, aligned and
-stretched, with points beyond the box, grids the strides do not divide, one-entry axes and gradients that are zero;
+density and appearance features, values and every plane's and line's gradient, at every stride, with points
+beyond the box, grids the strides do not divide, one-entry axes and gradients that are zero;
 several reads of a block adding into one gradient; split over the cores as in one launch; and the fallback where the
 kernels do not compile."""
 
@@ -32,12 +32,12 @@ def grid_and_points(resolution, components, n=3000, seed=0):
 
 def torch_reads(grid, reads, features):
     """Values and gradients from the float64 torch reads (the reference): ``reads`` is a list of (coords, stride,
-    stretched, weights), the gradient that of the sum of every read's weighted values."""
+    weights), the gradient that of the sum of every read's weighted values."""
     grid64 = TensorVMGrid(grid.resolution_tuple, grid.components).double()
     grid64.load_state_dict({k: v.double() for k, v in grid.state_dict().items()})
     values, total = [], 0.0
-    for coords, stride, stretched, weights in reads:
-        products = grid64.plane_line_products(coords.double(), stride, stretched)
+    for coords, stride, weights in reads:
+        products = grid64.plane_line_products(coords.double(), stride)
         value = torch.cat(products, dim=-1) if features else sum(p.sum(dim=-1) for p in products)
         values.append(value.detach())
         total = total + (value * weights.double()).sum()
@@ -49,9 +49,8 @@ def fused_reads(grid, reads, features):
     for tensor in grid.parameters():
         tensor.grad = None
     step = fused_training_reads.StepReads(wp)
-    values = [step.read(grid, grid.view_coords(coords, stride, stretched), stride, features)
-              for coords, stride, stretched, _ in reads]
-    sum((value * weights).sum() for value, (_, _, _, weights) in zip(values, reads)).backward()
+    values = [step.read(grid, grid.view_coords(coords, stride), stride, features) for coords, stride, _ in reads]
+    sum((value * weights).sum() for value, (_, _, weights) in zip(values, reads)).backward()
     step.close()
     return [v.detach() for v in values], [t.grad for t in [*grid.planes, *grid.lines]]
 
@@ -78,12 +77,11 @@ def weights_for(coords, features, components):
 
 @needs_warp
 @pytest.mark.parametrize("features", [False, True])
-@pytest.mark.parametrize("stretched", [False, True])
 @pytest.mark.parametrize("stride", [1, 2, 4, 16])
-def test_a_fused_read_gives_the_planes_values_and_gradients(stride, stretched, features):
+def test_a_fused_read_gives_the_planes_values_and_gradients(stride, features):
     components = (5, 3, 2)
     grid, coords = grid_and_points((23, 30, 17), components)  # 23, 30, 17: no stride above 1 divides them all
-    reads = [(coords, stride, stretched, weights_for(coords, features, components))]
+    reads = [(coords, stride, weights_for(coords, features, components))]
     assert_same(fused_reads(grid, reads, features), torch_reads(grid, reads, features))
 
 
@@ -94,7 +92,7 @@ def test_a_blocks_reads_at_three_strides_add_into_one_gradient(features):
     the sum of what each read's torch backward gives."""
     components = (6, 2, 3)
     grid, coords = grid_and_points((31, 22, 27), components, n=4000)
-    reads = [(coords[k * 1000:(k + 2) * 1000], stride, False, weights_for(coords[:2000], features, components))
+    reads = [(coords[k * 1000:(k + 2) * 1000], stride, weights_for(coords[:2000], features, components))
              for k, stride in enumerate([1, 2, 4])]
     made = []
     tables = fused_training_reads._tables
@@ -112,7 +110,7 @@ def test_a_blocks_reads_at_three_strides_add_into_one_gradient(features):
 def test_a_one_entry_axis_and_no_points(features):
     components = (2, 2, 3)
     grid, coords = grid_and_points((9, 1, 12), components, n=500)
-    reads = [(coords, 1, False, weights_for(coords, features, components))]
+    reads = [(coords, 1, weights_for(coords, features, components))]
     assert_same(fused_reads(grid, reads, features), torch_reads(grid, reads, features))
     empty = fused_training_reads.StepReads(wp).read(grid, coords[:0], 1, features)
     assert empty.shape == ((0, 7) if features else (0,))
@@ -124,7 +122,7 @@ def test_reads_split_over_the_cores_equal_one_launch(monkeypatch, features):
     components = (4, 2, 2)
     split = fused_training_reads.SPLIT_MIN_FEATURE_SAMPLES if features else fused_training_reads.SPLIT_MIN_SAMPLES
     grid, coords = grid_and_points((40, 36, 30), components, n=split + 5000)
-    reads = [(coords, 2, False, weights_for(coords, features, components))]
+    reads = [(coords, 2, weights_for(coords, features, components))]
     monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
     (one,), one_grads = fused_reads(grid, reads, features)
     one_grads = [g.clone() for g in one_grads]
@@ -143,7 +141,7 @@ def test_a_plane_gradient_turned_channels_first_in_parts(monkeypatch, features):
     grid, coords = grid_and_points((210, 190, 9), components, n=5000)  # the XY plane: 39,900 rows
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     assert len(fused_kernels._parts(210 * 190, fused_training_reads.CHANNELS_FIRST_SPLIT_ROWS)) == 2
-    reads = [(coords, 1, False, weights_for(coords, features, components))]
+    reads = [(coords, 1, weights_for(coords, features, components))]
     assert_same(fused_reads(grid, reads, features), torch_reads(grid, reads, features))
 
 
@@ -159,7 +157,7 @@ def test_reads_without_gradient_add_none_and_a_closed_block_leaves_nothing_alive
     step.close()
     value.sum().backward()
     assert all(t.grad is not None for t in grid.parameters())
-    expected, _ = torch_reads(grid, [(coords, 1, False, torch.zeros(300, 7))], True)
+    expected, _ = torch_reads(grid, [(coords, 1, torch.zeros(300, 7))], True)
     assert torch.allclose(detached.double(), expected[0], rtol=1e-5, atol=1e-5)
     gc.disable()  # no cycle may keep the copies and gradient tables: plain reference counting frees them
     try:

@@ -263,41 +263,14 @@ def loss_along_the_schedule(model_and_batch, term):
         batch.step, model.schedule_length = None, None
 
 
-def test_geo_weight_decay_scales_lambda_geo_along_the_schedule(model_and_batch):
-    model = model_and_batch[0]
-    model.config.geo_weight_decay = 0.1
-    try:
-        with loss_along_the_schedule(model_and_batch, "geo_loss") as geo_loss_at:
-            start, middle, end = geo_loss_at(0), geo_loss_at(5), geo_loss_at(10)
-            assert start > 0
-            assert middle == pytest.approx(0.1**0.5 * start, rel=1e-4)
-            assert end == pytest.approx(0.1 * start, rel=1e-4)
-            # The other decaying weights keep their own ratio (loss_weight_decay), not lambda_geo's.
-            assert model.schedule(10).loss == pytest.approx(model.config.loss_weight_decay)
-            model.config.geo_weight_decay = 1.0
-            assert geo_loss_at(10) == pytest.approx(start, rel=1e-4)
-    finally:
-        model.config.geo_weight_decay = 1.0
-
-
-def test_sparse_depth_weight_decay_gives_lambda_sd_its_own_schedule(model_and_batch):
+def test_lambda_sd_falls_with_the_other_regularisers(model_and_batch):
     model = model_and_batch[0]
     decay = model.config.loss_weight_decay
-    try:
-        with loss_along_the_schedule(model_and_batch, "sparse_depth") as sparse_loss_at:
-            # Unset: lambda_sd falls with the other regularisers.
-            start = sparse_loss_at(0)
-            assert start > 0
-            assert sparse_loss_at(10) == pytest.approx(decay * start, rel=1e-4)
-            # Its own factor: 1 keeps it constant, 0.5 halves it by the end, the others keep theirs.
-            model.config.sparse_depth_weight_decay = 1.0
-            assert sparse_loss_at(10) == pytest.approx(start, rel=1e-4)
-            model.config.sparse_depth_weight_decay = 0.5
-            assert sparse_loss_at(5) == pytest.approx(0.5**0.5 * start, rel=1e-4)
-            assert sparse_loss_at(10) == pytest.approx(0.5 * start, rel=1e-4)
-            assert model.schedule(10).loss == pytest.approx(decay)
-    finally:
-        model.config.sparse_depth_weight_decay = None
+    with loss_along_the_schedule(model_and_batch, "sparse_depth") as sparse_loss_at:
+        start = sparse_loss_at(0)
+        assert start > 0
+        assert sparse_loss_at(10) == pytest.approx(decay * start, rel=1e-4)
+        assert model.schedule(10).loss == pytest.approx(decay)
 
 
 def test_geo_novel_weight_weighs_the_novel_rays_term_alone(model_and_batch):
@@ -321,44 +294,7 @@ def test_geo_novel_weight_weighs_the_novel_rays_term_alone(model_and_batch):
         model.config.geo_weight, model.config.geo_novel_weight = 0.01, None
 
 
-def test_the_novel_rays_photometric_term_reads_the_novel_rows_and_sends_gradients(model_and_batch):
-    from frugalnerf_ns.model.geometric_adaptation import novel_view_photometric_consistency
-
-    model, bundle, batch = model_and_batch
-    views = model.reference_views
-    assert batch.num_novel >= 4 and len(views.images) >= 2
-    try:
-        model.config.photometric_novel_weight = 0.5
-        model.config.photometric_max_error = 1.0  # an untrained field: keep every patch inside both images
-        torch.manual_seed(0)
-        outputs = model(bundle)
-        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
-        term = loss_dict["photometric_novel"]
-        # The same number from the novel rows of the render: their full-scale depth, their nearest view and the
-        # training view nearest to the ray after it.
-        rows = batch.novel
-        render = outputs["step"]
-        centers = views.camera_to_worlds[:, :3, 3]
-        first = batch.nearest_view[rows]
-        second = nearest_other_view(render.origins[rows], centers, own_view=first)
-        assert bool((second != first).all() & (second >= 0).all())
-        expected = novel_view_photometric_consistency(
-            render.origins[rows], render.directions[rows], render.metric_depths[0][rows], first, second, 4,
-            views, 3, 1.0)
-        assert float(term) == pytest.approx(0.5 * float(expected), rel=1e-5)
-        assert torch.isfinite(term) and float(term) > 0
-        model.zero_grad()
-        term.backward()
-        grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
-        assert grads and all(torch.isfinite(g).all() for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
-        model.config.photometric_novel_weight = 0.0
-        outputs = model(bundle)
-        assert "photometric_novel" not in model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
-    finally:
-        model.config.photometric_novel_weight, model.config.photometric_max_error = 0.0, 0.2
-
-
-def test_the_training_patches_photometric_term_passes_its_ssim_share(model_and_batch):
+def test_the_training_patches_photometric_term_reads_the_training_rows_and_sends_gradients(model_and_batch):
     from frugalnerf_ns.model.geometric_adaptation import photometric_consistency
 
     model, bundle, batch = model_and_batch
@@ -367,31 +303,27 @@ def test_the_training_patches_photometric_term_passes_its_ssim_share(model_and_b
         model.config.photometric_weight = 0.5
         model.config.photometric_max_error = 1.0  # an untrained field: keep every patch inside the other image
         rows = batch.train
-        terms = {}
-        for share in (0.0, 0.85):
-            model.config.photometric_ssim_share = share
-            torch.manual_seed(0)
-            outputs = model(bundle)
-            render = outputs["step"]
-            # An untrained field's depth lies just in front of its camera, outside the other views: read it at the
-            # distance to the scene's centre instead (the same value, the field's gradient).
-            depth = render.metric_depths[0]
-            render.metric_depths[0] = depth - depth.detach() + render.origins.detach().norm(dim=-1)
-            terms[share] = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))["photometric"]
-            indices = batch.indices.to(render.origins.device)
-            expected = photometric_consistency(
-                render.origins[rows], render.directions[rows], render.metric_depths[0][rows], indices[:, 0].long(),
-                indices[:, [2, 1]].float() + 0.5, batch.nearest_view[rows], batch.patch_size,
-                views, 3, 1.0, share)
-            assert float(terms[share]) == pytest.approx(0.5 * float(expected), rel=1e-5)
-        assert float(terms[0.0]) > 0 and float(terms[0.85]) != pytest.approx(float(terms[0.0]), rel=1e-3)
+        torch.manual_seed(0)
+        outputs = model(bundle)
+        render = outputs["step"]
+        # An untrained field's depth lies just in front of its camera, outside the other views: read it at the
+        # distance to the scene's centre instead (the same value, the field's gradient).
+        depth = render.metric_depths[0]
+        render.metric_depths[0] = depth - depth.detach() + render.origins.detach().norm(dim=-1)
+        term = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))["photometric"]
+        indices = batch.indices.to(render.origins.device)
+        expected = photometric_consistency(
+            render.origins[rows], render.directions[rows], render.metric_depths[0][rows], indices[:, 0].long(),
+            indices[:, [2, 1]].float() + 0.5, batch.nearest_view[rows], batch.patch_size,
+            views, 3, 1.0)
+        assert float(term) == pytest.approx(0.5 * float(expected), rel=1e-5)
+        assert float(term) > 0
         model.zero_grad()
-        terms[0.85].backward()
+        term.backward()
         grads = [p.grad for p in model.field.grid_parameters() if p.grad is not None]
         assert grads and all(torch.isfinite(g).all() for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
     finally:
         model.config.photometric_weight, model.config.photometric_max_error = 0.0, 0.2
-        model.config.photometric_ssim_share = 0.0
 
 
 def test_rays_without_another_view_are_left_out():
@@ -565,44 +497,13 @@ def test_a_room_whose_points_lie_beyond_the_box_trains_without_the_warp_losses(m
     assert seen(forward).all() and not seen(centres + 0.5 * views.camera_to_worlds[:, :3, 2]).any()
 
 
-def test_in_a_room_l_geo_can_compare_the_whole_rays_depth_contracted_beyond_the_box(model_and_batch):
-    from frugalnerf_ns.geometry.contraction import contract_along_ray
-    from frugalnerf_ns.geometry.raymarch import intersect_aabb
-    from frugalnerf_ns.model.objective import geo_loss_depths
-
+def test_in_a_room_l_geo_compares_the_boxs_own_depths(model_and_batch):
     model, bundle, batch = model_and_batch
-
-    def geo(variant):
-        torch.manual_seed(1)
-        outputs = variant(bundle)
-        terms = variant.get_loss_dict(outputs, batch, variant.get_metrics_dict(outputs, batch))
-        return outputs["step"], terms["geo_loss"]
-
     box = _variant(model, {"far_background": True})
-    step, box_loss = geo(box)
-    rows = batch.warped
-    # Where the outer space is modelled, the step knows where each ray leaves the box.
-    segments = intersect_aabb(step.origins, step.directions, box.field.aabb, box.config.near_plane)
-    assert torch.allclose(step.box_exit[segments.hit], segments.t_far[segments.hit])
-    # The default compares the box's own depths (the paper's rendered depth); nothing beyond the box moves it.
-    assert torch.equal(geo_loss_depths(box.config, step, rows), torch.stack([s.depth[rows, 0] for s in step.scales]))
+    torch.manual_seed(1)
+    outputs = box(bundle)
+    box_loss = box.get_loss_dict(outputs, batch, box.get_metrics_dict(outputs, batch))["geo_loss"]
+    # The box's own depths (the paper's rendered depth): nothing beyond the box moves L_geo.
     outer = [p for p in box.outer_space.parameters() if p.requires_grad]
     grads = torch.autograd.grad(box_loss, outer, allow_unused=True)
     assert all(g is None or float(g.abs().max()) == 0.0 for g in grads)
-    # "contracted": the whole ray's depth, unchanged within the box, bounded by twice the exit beyond it; the outer
-    # grids now get L_geo's gradient.
-    contracted = _variant(model, {"far_background": True}, room_geo_depth="contracted")
-    step, loss = geo(contracted)
-    depths = geo_loss_depths(contracted.config, step, rows)
-    whole = torch.stack([d[rows] for d in step.metric_depths])
-    exit_distance = step.box_exit[rows]
-    assert torch.equal(depths, contract_along_ray(whole, exit_distance[None]))
-    within = whole <= exit_distance[None]
-    assert torch.equal(depths[within], whole[within]) and bool((depths < 2 * exit_distance[None]).all())
-    outer = [p for p in contracted.outer_space.parameters() if p.requires_grad]
-    grads = torch.autograd.grad(loss, outer, allow_unused=True)
-    assert any(g is not None and float(g.abs().max()) > 0 for g in grads)
-    # Without a room the setting changes nothing.
-    torch.manual_seed(1)
-    plain = _variant(model, {}, room_geo_depth="contracted")
-    assert plain(bundle)["step"].box_exit is None

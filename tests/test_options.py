@@ -32,12 +32,9 @@ def test_every_preset_passes_the_checks(preset):
         ("pipeline.model.alpha_mask_at", (0.2, 1.0), "got 0.2 1.0"),
         ("schedule_steps", 0, "--schedule-steps must be >= 1 (or unset: the run's iterations), got 0"),
         ("pipeline.model.loss_weight_decay", 0.0, "--pipeline.model.loss-weight-decay must be > 0"),
-        ("pipeline.model.geo_weight_decay", 0.0, "--pipeline.model.geo-weight-decay must be > 0"),
-        ("pipeline.model.sparse_depth_weight_decay", -1.0, "--pipeline.model.sparse-depth-weight-decay must be > 0"),
         ("pipeline.model.geo_novel_weight", -0.1, "--pipeline.model.geo-novel-weight must be >= 0 and finite, got -0.1"),
         ("pipeline.datamanager.num_novel_rays_per_batch", -1, "got -1"),
         ("pipeline.datamanager.triangulation.sift_upsample", 0, "--pipeline.datamanager.triangulation.sift-upsample must be a whole number >= 1, got 0"),
-        ("pipeline.model.scale_spanning_scales", 0, "--pipeline.model.scale-spanning-scales must be >= 1 (or None: all), got 0"),
     ],
 )
 def test_a_bad_value_is_one_line_naming_the_option_and_limit(path, value, expected):

@@ -7,7 +7,7 @@ import torch
 from nerfstudio.cameras.rays import RayBundle
 
 from frugalnerf_ns.field.outer_space import FAR_BOX_HALVES, OuterSpace
-from frugalnerf_ns.geometry.contraction import contract, contract_along_ray, disparity_bins, interval_distortion, uncontract
+from frugalnerf_ns.geometry.contraction import contract, disparity_bins, interval_distortion, uncontract
 from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from frugalnerf_ns.batch import TrainBatch
 from tests.helpers import tiny_model
@@ -34,22 +34,6 @@ def test_points_in_and_beyond_the_box_contract_and_come_back_exactly():
     # The contraction is continuous across the box's faces.
     face = torch.tensor([[3.0, 0.3, 0.7]], dtype=torch.float64)
     assert torch.allclose(contract(face + 1e-9, *box64), contract(face - 1e-9, *box64), atol=1e-8)
-
-
-def test_a_depth_along_a_ray_is_kept_inside_the_box_and_bounded_beyond_it():
-    exit_distance = torch.tensor([2.0, 2.0, 2.0, 2.0, 5.0, 5.0], dtype=torch.float64, requires_grad=True)
-    depth = torch.tensor([0.5, 2.0, 4.0, 1e6, 5.0 - 1e-9, 5.0 + 1e-9], dtype=torch.float64, requires_grad=True)
-    out = contract_along_ray(depth, exit_distance)
-    assert torch.equal(out[:2], depth[:2])  # up to the exit: unchanged
-    assert float(out[2]) == pytest.approx(3.0)  # twice the exit distance: t_f (2 - 1/2)
-    assert 3.99 < float(out[3]) < 4.0  # everything beyond within [t_f, 2 t_f)
-    assert float(out[4]) == pytest.approx(float(out[5]), abs=1e-8)  # continuous at the exit
-    # Slope 1 at the exit, t_f^2 / d^2 beyond: equal steps in disparity are equal steps here.
-    (grad,) = torch.autograd.grad(out.sum(), depth)
-    assert torch.allclose(grad, torch.tensor([1.0, 1.0, 0.25, 4e-12, 1.0, 1.0], dtype=torch.float64), atol=1e-6)
-    disparities = torch.tensor([0.4, 0.3, 0.2, 0.1], dtype=torch.float64)
-    steps = contract_along_ray(1 / disparities, torch.full_like(disparities, 2.0)).diff()
-    assert torch.allclose(steps, steps[:1].expand_as(steps))
 
 
 @pytest.mark.parametrize("jitter", [False, True])

@@ -50,7 +50,7 @@ def test_paper_preset_holds_the_paper_settings():
     assert model.outer_space_resolution == 128
     assert presets.build_trainer_config("frugalnerf-cpu").pipeline.model.outer_space_resolution == 256
     # Not a paper term: the CPU presets' photometric consistency is off here.
-    assert model.photometric_weight == 0.0 and model.photometric_ssim_share == 0.0
+    assert model.photometric_weight == 0.0
     assert config.optimizers["encodings"]["optimizer"].lr == 0.08
     assert config.optimizers["encodings"]["optimizer"].betas == (0.9, 0.99)
     assert config.optimizers["fields"]["optimizer"].lr == 0.004

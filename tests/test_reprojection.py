@@ -91,9 +91,9 @@ def test_points_behind_or_off_image_are_masked_and_everything_stays_finite(two_v
     warp = warp_to_views(origins, directions, depth, target, images, cameras, INTRINSICS.expand(2, 4))
     assert warp.valid.tolist() == [False, True, False, False]
     assert torch.isfinite(warp.colors).all() and (warp.colors[~warp.valid] == 0).all()
-    error = patch_reprojection_error(torch.full((1, 4, 3), 0.5), Warp(warp.colors[None], warp.valid[None]), kind="mse")
-    # Three of four pixels are invalid and count with the maximal error.
-    assert float(error) >= 0.75 * MAX_PIXEL_ERROR
+    error = patch_reprojection_error(torch.full((1, 4, 3), 0.5), Warp(warp.colors[None], warp.valid[None]))
+    # Three of four pixels are invalid and count with the maximal error (RMSE: at least sqrt(0.75)).
+    assert float(error) >= 0.75**0.5 * MAX_PIXEL_ERROR
     # NaN pixel coordinates (e.g. from a NaN depth) are invalid, not propagated.
     sampled = sample_images(images, torch.zeros(1, dtype=torch.long), torch.tensor([[float("nan"), 3.0]]))
     assert not sampled.valid.any() and torch.isfinite(sampled.colors).all()
@@ -107,13 +107,12 @@ def test_bilinear_sampling_reads_pixel_centres_exactly(two_views):
     assert warp.valid.all() and torch.allclose(warp.colors, expected, atol=1e-6)
 
 
-def test_rmse_is_the_root_of_mse():
+def test_the_patch_error_is_the_rmse_over_the_patch():
     source = torch.rand(2, 3, 25, 3, generator=torch.Generator().manual_seed(0))
     warped = Warp(torch.rand(2, 3, 25, 3, generator=torch.Generator().manual_seed(1)), torch.ones(2, 3, 25, dtype=torch.bool))
-    mse = patch_reprojection_error(source, warped, kind="mse")
-    assert mse.shape == (2, 3)
-    assert torch.allclose(patch_reprojection_error(source, warped, kind="rmse"), mse.sqrt())
-    assert torch.allclose(mse[0, 0], ((source[0, 0] - warped.colors[0, 0]) ** 2).mean())
+    rmse = patch_reprojection_error(source, warped)
+    assert rmse.shape == (2, 3)
+    assert torch.allclose(rmse, ((source - warped.colors) ** 2).mean(dim=(-1, -2)).sqrt())
 
 
 def test_scale_selection_picks_the_scale_with_the_least_error_and_drops_unreliable_rays():

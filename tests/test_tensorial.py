@@ -54,26 +54,6 @@ def test_strided_coordinates_read_the_same_world_point():
     assert coords_for_stride(torch.tensor(-1.0), 37, 4) == -1.0
 
 
-def test_stretched_lower_scales_read_their_view_as_a_grid_over_the_box():
-    torch.manual_seed(0)
-    coords = torch.cat([torch.rand(300, 3) * 2 - 1, torch.ones(1, 3), -torch.ones(1, 3)])
-    for res, spans in (((38, 22, 30), False), ((37, 21, 29), True)):  # 37 = 4 * 9 + 1: the 1/4 view spans the box
-        grid = TensorVMGrid(res, (3, 2, 2))
-        stride = 4
-        stretched = grid.plane_line_products(coords, stride=stride, stretched=True)
-        aligned = grid.plane_line_products(coords, stride=stride)
-        planes, lines = grid.scale_views(stride)
-        x, y, z = coords.unbind(-1)
-        # The reference: every view read as a contiguous tensor of its own, its corners on the box's faces.
-        for product, plane, line, (a, b), axis in zip(stretched, planes, lines, ((x, y), (x, z), (y, z)), (z, y, x)):
-            plane_read = F.grid_sample(plane.contiguous(), torch.stack([a, b], -1).view(1, -1, 1, 2), align_corners=True)
-            line_read = F.grid_sample(line.contiguous(), torch.stack([torch.zeros_like(axis), axis], -1).view(1, -1, 1, 2),
-                                      align_corners=True)
-            torch.testing.assert_close(product, (plane_read * line_read).view(plane.shape[1], -1).T)
-        differ = max(float((s_ - a_).abs().max()) for s_, a_ in zip(stretched, aligned))
-        assert (differ < 1e-6) == spans, (res, differ)
-
-
 def test_model_size_does_not_grow_with_the_number_of_scales():
     sizes = []
     for lower in range(4):
@@ -100,64 +80,6 @@ def test_crop_keeps_values_inside_the_kept_region():
     grid.crop((2, 3, 1), (8, 9, 10))
     assert grid.resolution_tuple == (7, 7, 10)
     torch.testing.assert_close(grid.planes[0].detach(), full_plane[:, :, 3:10, 2:9])
-
-
-def _adam_state_after_steps(grid, steps=3):
-    optimizer = torch.optim.Adam(grid.parameters(), lr=0.01)
-    coords = torch.rand(200, 3) * 2 - 1
-    for _ in range(steps):
-        optimizer.zero_grad()
-        sum(p.square().sum() for p in grid.plane_line_products(coords)).backward()
-        optimizer.step()
-    return optimizer
-
-
-def test_resample_and_crop_carry_the_optimiser_moments_to_the_new_tensors():
-    torch.manual_seed(0)
-    grid = TensorVMGrid((9, 7, 5), (3, 2, 2))
-    optimizer = _adam_state_after_steps(grid)
-    old_plane, old_line = grid.planes[0], grid.lines[2]
-    plane_moments = {k: v.clone() for k, v in optimizer.state[old_plane].items()}
-    line_sq = optimizer.state[old_line]["exp_avg_sq"].clone()
-    grid.resample((17, 13, 9), optimizer.state)
-    new_plane, new_line = grid.planes[0], grid.lines[2]
-    assert old_plane not in optimizer.state and new_plane in optimizer.state
-    carried = optimizer.state[new_plane]
-    # The moments are resampled exactly as the values were (plane 0 spans x (width) and y (height)).
-    expected = F.interpolate(plane_moments["exp_avg"], size=(13, 17), mode="bilinear", align_corners=True)
-    torch.testing.assert_close(carried["exp_avg"], expected)
-    assert carried["exp_avg_sq"].shape == new_plane.shape and (carried["exp_avg_sq"] >= 0).all()
-    assert torch.equal(carried["step"], plane_moments["step"])  # bias correction continues, not restarts
-    # line 2 runs along x: 9 -> 17 entries; refinement by 2 keeps every old entry at the even positions.
-    torch.testing.assert_close(optimizer.state[new_line]["exp_avg_sq"][:, :, ::2], line_sq)
-    grid.crop((2, 3, 1), (8, 9, 7), optimizer.state)
-    torch.testing.assert_close(optimizer.state[grid.planes[0]]["exp_avg"], expected[:, :, 3:10, 2:9])
-    assert len(optimizer.state) == 6  # every tensor's state moved; none left behind under an old key
-
-
-def test_a_carried_adam_continues_where_a_fresh_one_jumps():
-    """A fresh Adam's first step moves every entry with a gradient by ~lr (lr * sign); one continuing from
-    the carried moments moves them by what the history says (a few times less here)."""
-    torch.manual_seed(0)
-    coords = torch.rand(200, 3) * 2 - 1
-    moves = {}
-    for carry in (False, True):
-        torch.manual_seed(1)
-        grid = TensorVMGrid((9, 7, 5), (3, 2, 2))
-        optimizer = _adam_state_after_steps(grid, steps=20)
-        grid.resample((17, 13, 9), optimizer.state if carry else None)
-        fresh = torch.optim.Adam(grid.parameters(), lr=0.01)
-        if carry:
-            for p in grid.parameters():
-                fresh.state[p] = optimizer.state[p]
-        before = [p.detach().clone() for p in grid.parameters()]
-        fresh.zero_grad()
-        sum(p.square().sum() for p in grid.plane_line_products(coords)).backward()
-        fresh.step()
-        moves[carry] = torch.cat([(p.detach() - b).abs().flatten() for p, b in zip(grid.parameters(), before)])
-    touched = moves[False] > 0
-    assert moves[False][touched].median() == pytest.approx(0.01, rel=0.01)
-    assert moves[True][touched].median() < 0.5 * moves[False][touched].median()
 
 
 def test_state_dict_loads_into_a_grid_of_another_resolution():
@@ -197,28 +119,8 @@ def test_span_stride_gives_lower_scale_views_that_end_on_the_far_face():
         )
     # Tiny counts keep at least one coarse interval per axis.
     assert resolution_for_voxels(8, (1.0, 1.0, 1.0), span_stride=16) == (17, 17, 17)
-
-
-def test_span_rounding_up_never_gives_an_axis_fewer_entries():
-    box = (3.0, 3.34, 2.0)  # LLFF's NDC box
-    for voxels in (32**3, 86066, 160**3):
-        plain = resolution_for_voxels(voxels, box)
-        nearest = resolution_for_voxels(voxels, box, span_stride=16)
-        up = resolution_for_voxels(voxels, box, span_stride=16, span_rounding="up")
-        for r, n, u in zip(plain, nearest, up):
-            assert (u - 1) % 16 == 0 and r <= u < r + 16 and u >= n
-    assert resolution_for_voxels(32**3, box, span_stride=16) == (33, 33, 17)
-    assert resolution_for_voxels(32**3, box, span_stride=16, span_rounding="up") == (49, 49, 33)
-    # "kept": the nearest sizes unless they keep under 3/4 of the voxels; LLFF's first grid keeps 59 %.
-    for voxels in (32**3, 86066, 226054, 593739, 1559473, 160**3):
-        asked = math.prod(resolution_for_voxels(voxels, box))
-        nearest = resolution_for_voxels(voxels, box, span_stride=16)
-        kept = resolution_for_voxels(voxels, box, span_stride=16, span_rounding="kept")
-        assert all((k - 1) % 16 == 0 for k in kept) and math.prod(kept) >= 0.75 * asked
-        assert kept == nearest or math.prod(nearest) < 0.75 * asked
-    assert resolution_for_voxels(32**3, box, span_stride=16, span_rounding="kept") == (33, 33, 33)
-    with pytest.raises(ValueError, match="span_rounding"):
-        resolution_for_voxels(32**3, box, span_stride=16, span_rounding="down")
+    # The nearest such sizes: LLFF's NDC box's first 32^3 grid (35x39x23) keeps 59 % of its voxels.
+    assert resolution_for_voxels(32**3, (3.0, 3.34, 2.0), span_stride=16) == (33, 33, 17)
 
 
 def test_sample_step_is_half_a_voxel_and_coarser_by_the_ratio_at_lower_scales():
@@ -330,15 +232,14 @@ def density_where_inside(field, points, scale=0):
 
 
 # The mask multiplies the activated density, whichever the activation: one masked case suffices.
-@pytest.mark.parametrize("activation, mask, reading", [("relu", False, "aligned"), ("softplus", False, "aligned"),
-                                                      ("relu", True, "aligned"), ("relu", False, "stretched")])
-def test_baked_density_reads_what_the_planes_and_lines_give_where_occupied_at_every_scale(activation, mask, reading):
+@pytest.mark.parametrize("activation, mask", [("relu", False), ("softplus", False), ("relu", True)])
+def test_baked_density_reads_what_the_planes_and_lines_give_where_occupied_at_every_scale(activation, mask):
     # Resolutions that are not 4k+1 or 16k+1: the lower scales' views stop short of the far faces there, and
     # points beyond read the border entry in both paths. Points reach outside the box (density 0 there).
     torch.manual_seed(0)
     aabb = torch.tensor([[-1.0, -0.5, -2.0], [1.5, 0.5, 1.0]])
     field = FrugalNeRFField(aabb, (23, 10, 30), density_components=(5, 3, 2), appearance_components=(2, 2, 2),
-                            density_activation=activation, mlp_implementation="torch", lower_scale_reading=reading)
+                            density_activation=activation, mlp_implementation="torch")
     with torch.no_grad():
         if mask:  # empty one corner, so the mask leaves it out; then shrink, so the mask's box is the larger
             for plane in field.density_grid.planes:
@@ -453,15 +354,14 @@ def test_node_sum_matrix_products_match_einsum_values_and_gradients(resolution):
 
 @pytest.mark.parametrize("resolution", [(33, 33, 17), (20, 23, 11), (2, 5, 3)])
 @pytest.mark.parametrize("stride", [1, 4, 16])
-@pytest.mark.parametrize("stretched", [False, True])
-def test_node_sum_reads_match_the_planes_values_and_gradients(resolution, stride, stretched):
+def test_node_sum_reads_match_the_planes_values_and_gradients(resolution, stride):
     torch.manual_seed(1)
     grid = TensorVMGrid(resolution, (16, 4, 4)).double()
     points = torch.rand(2000, 3, dtype=torch.float64) * 2.4 - 1.2  # some beyond the box: border clamping
-    reference = sum(p.sum(dim=-1) for p in grid.plane_line_products(points, stride, stretched))
+    reference = sum(p.sum(dim=-1) for p in grid.plane_line_products(points, stride))
     weights = torch.randn_like(reference)
     expected = torch.autograd.grad((reference * weights).sum(), list(grid.parameters()))
-    values = read_node_sum(grid.node_sum(), points, stride, stretched)
+    values = read_node_sum(grid.node_sum(), points, stride)
     got = torch.autograd.grad((values * weights).sum(), list(grid.parameters()))
     assert torch.allclose(values, reference, rtol=0, atol=1e-12)
     for a, b in zip(got, expected):

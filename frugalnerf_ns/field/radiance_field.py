@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from typing import Callable, Dict, Iterator, List, Literal, Optional, Sequence, Tuple
+from typing import Callable, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -19,14 +19,11 @@ from frugalnerf_ns.field.color_mlp import ColorMLP, MLPImplementation, native_bf
 from frugalnerf_ns.field.density import BakedDensity, DensityActivation, activate_density
 from frugalnerf_ns.field import fused_training_reads
 from frugalnerf_ns.field.tensorial import (
-    OptimizerState,
     TensorVMGrid,
     read_node_sum,
     strided_length,
     trilinear_rows,
 )
-
-LowerScaleReading = Literal["aligned", "stretched"]
 
 BAKED_DENSITY_MAX_ENTRIES = 2**26
 """Largest grid (nodes) whose density is baked into one dense tensor for rendering outside training: 256 MiB
@@ -61,10 +58,9 @@ class FrugalNeRFField(nn.Module):
         appearance_components: the same for appearance (paper LLFF: 48/12/12).
         appearance_dim: output size of the shared basis matrix (27).
         downsample_ratio: stride ratio between consecutive scales (s = 4).
-        num_lower_scales: L, the number of lower scales (2: three scales in all).
-        lower_scale_reading: where a lower scale's strided view is read: "aligned", each entry at its place in
-            the full grid (the view may stop short of the box's far faces); "stretched", the view's first and
-            last entries on the box's faces (``TensorVMGrid.plane_line_products``).
+        num_lower_scales: L, the number of lower scales (2: three scales in all). A lower scale reads each entry
+            of its strided view at its place in the full grid (the view may stop short of the box's far faces:
+            ``TensorVMGrid.plane_line_products``).
     """
 
     def __init__(
@@ -82,12 +78,8 @@ class FrugalNeRFField(nn.Module):
         use_view_dirs: bool = False,
         view_pe: int = 0,
         mlp_implementation: MLPImplementation = "auto",
-        lower_scale_reading: LowerScaleReading = "aligned",
     ) -> None:
         super().__init__()
-        if lower_scale_reading not in ("aligned", "stretched"):
-            raise ValueError(f"lower_scale_reading must be 'aligned' or 'stretched', got {lower_scale_reading!r}")
-        self.stretched = lower_scale_reading == "stretched"
         self.register_buffer("aabb", aabb.clone().float())
         self.downsample_ratio = downsample_ratio
         self.num_scales = num_lower_scales + 1
@@ -178,11 +170,11 @@ class FrugalNeRFField(nn.Module):
             # Made at the first read with gradients (one made under no_grad would carry none to the planes).
             if nodes is None or (torch.is_grad_enabled() and not nodes.requires_grad):
                 nodes = self._shared_nodes[0] = self.density_grid.node_sum()
-            raw = read_node_sum(nodes, coords, self.stride(scale), self.stretched)
+            raw = read_node_sum(nodes, coords, self.stride(scale))
         else:
             raw = self._fused_read(self.density_grid, coords, scale, features=False)
             if raw is None:
-                products = self.density_grid.plane_line_products(coords, self.stride(scale), self.stretched)
+                products = self.density_grid.plane_line_products(coords, self.stride(scale))
                 raw = sum(p.sum(dim=-1) for p in products)
         return activate_density(raw, self.density_activation)  # type: ignore[arg-type]
 
@@ -211,7 +203,7 @@ class FrugalNeRFField(nn.Module):
         if self._step_reads is None or coords.requires_grad or not coords.shape[0]:
             return None
         stride = self.stride(scale)
-        return self._step_reads.read(grid, grid.view_coords(coords, stride, self.stretched), stride, features)
+        return self._step_reads.read(grid, grid.view_coords(coords, stride), stride, features)
 
     @contextlib.contextmanager
     def shared_density_nodes(self, enabled: bool = True) -> Iterator[None]:
@@ -234,7 +226,7 @@ class FrugalNeRFField(nn.Module):
         x' = (x + 1) k - 1 with k = (R - 1) / (s (n - 1)), or 0 where the view keeps one entry)."""
         a = 2.0 / (self.aabb[1] - self.aabb[0])
         b = -self.aabb[0] * a - 1.0
-        if stride == 1 or self.stretched:
+        if stride == 1:
             return a, b
         res = self.density_grid.resolution_tuple
         k = [0.0 if strided_length(r, stride) == 1 else (r - 1) / (stride * (strided_length(r, stride) - 1)) for r in res]
@@ -312,7 +304,7 @@ class FrugalNeRFField(nn.Module):
             from frugalnerf_ns.field import fused_kernels
 
             stride = self.stride(scale)
-            coords = self.appearance_grid.view_coords(self.normalize(positions), stride, self.stretched)
+            coords = self.appearance_grid.view_coords(self.normalize(positions), stride)
             key = ("channels last", stride)
             current = self._versions([*self.appearance_grid.planes, *self.appearance_grid.lines])
             if self._channels_last.get(key, (None,))[0] != current:
@@ -351,15 +343,15 @@ class FrugalNeRFField(nn.Module):
         coords = self.normalize(positions)
         products = self._fused_read(self.appearance_grid, coords, scale, features=True)
         if products is None:
-            products = torch.cat(self.appearance_grid.plane_line_products(coords, self.stride(scale), self.stretched), -1)
+            products = torch.cat(self.appearance_grid.plane_line_products(coords, self.stride(scale)), -1)
         features = self.appearance_basis(products)
         return self.color_mlp(features, directions)
 
     # ---- schedules (called from training callbacks) ---------------------------------------------------
-    def upsample(self, resolution: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:
-        """Resample both grids (and, given the grid optimiser's state, its moments: ``TensorVMGrid.resample``)."""
-        self.density_grid.resample(resolution, optimizer_state)
-        self.appearance_grid.resample(resolution, optimizer_state)
+    def upsample(self, resolution: Sequence[int]) -> None:
+        """Resample both grids (``TensorVMGrid.resample``)."""
+        self.density_grid.resample(resolution)
+        self.appearance_grid.resample(resolution)
 
     @torch.no_grad()
     def update_alpha_mask(
@@ -393,9 +385,8 @@ class FrugalNeRFField(nn.Module):
         return torch.stack([occupied.amin(dim=0), occupied.amax(dim=0)])
 
     @torch.no_grad()
-    def shrink(self, new_aabb: Float[Tensor, "2 3"], optimizer_state: Optional[OptimizerState] = None) -> None:
-        """Crop both grids (and the optimiser's moments) to the voxels covering ``new_aabb``; the box snaps to
-        the kept voxels."""
+    def shrink(self, new_aabb: Float[Tensor, "2 3"]) -> None:
+        """Crop both grids to the voxels covering ``new_aabb``; the box snaps to the kept voxels."""
         res = self.density_grid.resolution.to(self.aabb)
         units = self.voxel_size()
         lower = ((new_aabb[0] - self.aabb[0]) / units).floor().clamp_min(0)
@@ -405,8 +396,8 @@ class FrugalNeRFField(nn.Module):
         upper = torch.maximum(upper, torch.minimum(lower + 1, res - 1))
         lower = torch.minimum(lower, upper - 1).clamp_min(0)
         lo, hi = lower.long().tolist(), upper.long().tolist()
-        self.density_grid.crop(lo, hi, optimizer_state)
-        self.appearance_grid.crop(lo, hi, optimizer_state)
+        self.density_grid.crop(lo, hi)
+        self.appearance_grid.crop(lo, hi)
         self.aabb = torch.stack([self.aabb[0] + lower * units, self.aabb[0] + upper * units])
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: D401

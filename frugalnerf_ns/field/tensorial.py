@@ -12,7 +12,7 @@ full-resolution entries. The paper's ablation prefers this nearest (strided) dow
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Dict, List, MutableMapping, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -23,8 +23,6 @@ from torch import Tensor, nn
 PLANE_AXES: Tuple[Tuple[int, int], ...] = ((0, 1), (0, 2), (1, 2))
 #: the axis each plane's partner line runs along (the one the plane does not span).
 LINE_AXES: Tuple[int, ...] = (2, 1, 0)
-#: an optimiser's per-parameter state (``torch.optim.Optimizer.state``).
-OptimizerState = MutableMapping[nn.Parameter, Dict[str, Any]]
 
 
 def strided_length(resolution: int, stride: int) -> int:
@@ -242,10 +240,10 @@ class _NodeRead(torch.autograd.Function):
 
 
 def read_node_sum(
-    nodes: Float[Tensor, "z y x"], coords: Float[Tensor, "n 3"], stride: int = 1, stretched: bool = False
+    nodes: Float[Tensor, "z y x"], coords: Float[Tensor, "n 3"], stride: int = 1
 ) -> Float[Tensor, " n"]:
     """Trilinear read of ``TensorVMGrid.node_sum`` at n points in [-1, 1] (x, y, z; corners aligned, border
-    clamped), at a stride: equal (to float rounding) to ``plane_line_products(coords, stride, stretched)`` summed
+    clamped), at a stride: equal (to float rounding) to ``plane_line_products(coords, stride)`` summed
     over planes and components, at 8 reads of one value per point instead of 3 planes x 4 corners x C channels
     and 3 lines x 2 x C (and as many scattered adds in the backward pass).
 
@@ -254,9 +252,9 @@ def read_node_sum(
     """
     res = (nodes.shape[2], nodes.shape[1], nodes.shape[0])  # x, y, z
     lengths = [strided_length(r, stride) for r in res]
-    # Index along each axis of the strided view: the full grid's index / stride ("aligned", where the view's
-    # entries lie; ``coords_for_stride``), or the view's own corner-aligned index ("stretched").
-    per_unit = [0.5 * (n - 1) if stretched else 0.5 * (r - 1) / stride for r, n in zip(res, lengths)]
+    # Index along each axis of the strided view: the full grid's index / stride (where the view's entries lie;
+    # ``coords_for_stride``).
+    per_unit = [0.5 * (r - 1) / stride for r in res]
     device, dtype = coords.device, coords.dtype
     size = torch.tensor(lengths, device=device, dtype=dtype)
     low, weight = _cell_corners((coords + 1.0) * torch.tensor(per_unit, device=device, dtype=dtype), size)
@@ -307,22 +305,18 @@ class TensorVMGrid(nn.Module):
         """Strided views of the planes and lines: they share storage with the full-resolution tensors."""
         return [strided_view(p, stride) for p in self.planes], [strided_view(line, stride) for line in self.lines]
 
-    def view_coords(self, coords: Float[Tensor, "n 3"], stride: int = 1, stretched: bool = False) -> Float[Tensor, "n 3"]:
+    def view_coords(self, coords: Float[Tensor, "n 3"], stride: int = 1) -> Float[Tensor, "n 3"]:
         """Where the strided views of ``plane_line_products`` read full-grid coordinates ``coords``."""
-        if stretched:
-            return coords
         res = self.resolution_tuple
         return torch.stack([coords_for_stride(coords[:, i], res[i], stride) for i in range(3)], dim=-1)
 
     def plane_line_products(
-        self, coords: Float[Tensor, "n 3"], stride: int = 1, stretched: bool = False
+        self, coords: Float[Tensor, "n 3"], stride: int = 1
     ) -> List[Float[Tensor, "n comps"]]:
         """Per plane, the component-wise product plane(coords) * line(coords) at the given stride.
 
-        A strided view is read where its entries lie in the full grid (``coords_for_stride``), or, ``stretched``,
-        with its first and last entries on the box's faces (the coordinates as they are: what reading the view
-        as a tensor of its own over the box gives, as the reference code reads its downsampled tensors)."""
-        mapped = self.view_coords(coords, stride, stretched)
+        A strided view is read where its entries lie in the full grid (``coords_for_stride``)."""
+        mapped = self.view_coords(coords, stride)
         products = []
         # The full tensors with the stride: a read's gradient goes straight into the full-size tensor.
         for plane, line, (a, b), line_axis in zip(self.planes, self.lines, PLANE_AXES, LINE_AXES):
@@ -356,29 +350,26 @@ class TensorVMGrid(nn.Module):
         return nodes
 
     @torch.no_grad()
-    def resample(self, resolution: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:
+    def resample(self, resolution: Sequence[int]) -> None:
         """Resample every plane and line to a new resolution (bilinear / linear, corners aligned).
 
         The tensors are replaced by new Parameters (autograd caches a leaf's shape, so resizing one in place
-        breaks the next backward); the caller must recreate the optimiser. ``optimizer_state`` (an optimiser's
-        ``state``, keyed by parameter) gets the same resampling of each old tensor's moments, keyed by the new
-        one, so the new optimiser can continue from them.
+        breaks the next backward); the caller must recreate the optimiser.
         """
         for i, ((a, b), line_axis) in enumerate(zip(PLANE_AXES, LINE_AXES)):
             plane_size, line_size = (resolution[b], resolution[a]), (resolution[line_axis], 1)
-            self.planes[i] = _replaced(self.planes[i], lambda t, size=plane_size: _interpolated(t, size), optimizer_state)
-            self.lines[i] = _replaced(self.lines[i], lambda t, size=line_size: _interpolated(t, size), optimizer_state)
+            self.planes[i] = _replaced(self.planes[i], lambda t, size=plane_size: _interpolated(t, size))
+            self.lines[i] = _replaced(self.lines[i], lambda t, size=line_size: _interpolated(t, size))
         self.resolution.copy_(torch.tensor([int(r) for r in resolution]))
 
     @torch.no_grad()
-    def crop(self, lower: Sequence[int], upper: Sequence[int], optimizer_state: Optional[OptimizerState] = None) -> None:
-        """Keep entries lower[i]..upper[i] (inclusive) along each axis (new Parameters and moments, as in
-        ``resample``)."""
+    def crop(self, lower: Sequence[int], upper: Sequence[int]) -> None:
+        """Keep entries lower[i]..upper[i] (inclusive) along each axis (new Parameters, as in ``resample``)."""
         for i, ((a, b), line_axis) in enumerate(zip(PLANE_AXES, LINE_AXES)):
             rows, cols = slice(lower[b], upper[b] + 1), slice(lower[a], upper[a] + 1)
-            self.planes[i] = _replaced(self.planes[i], lambda t, r=rows, c=cols: t[:, :, r, c].contiguous(), optimizer_state)
+            self.planes[i] = _replaced(self.planes[i], lambda t, r=rows, c=cols: t[:, :, r, c].contiguous())
             entries = slice(lower[line_axis], upper[line_axis] + 1)
-            self.lines[i] = _replaced(self.lines[i], lambda t, e=entries: t[:, :, e, :].contiguous(), optimizer_state)
+            self.lines[i] = _replaced(self.lines[i], lambda t, e=entries: t[:, :, e, :].contiguous())
         self.resolution.copy_(torch.tensor([int(u) - int(lo) + 1 for lo, u in zip(lower, upper)]))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: D401
@@ -398,11 +389,6 @@ def _interpolated(tensor: Tensor, size: Tuple[int, int]) -> Tensor:
     return F.interpolate(tensor, size=size, mode="bilinear", align_corners=True)
 
 
-def _replaced(param: nn.Parameter, transform: Callable[[Tensor], Tensor], state: Optional[OptimizerState]) -> nn.Parameter:
-    """A new Parameter holding ``transform(param)``; the optimiser state of ``param`` moves to it, each
-    tensor of the parameter's shape (Adam's moments) transformed the same way, the rest (the step) kept."""
-    new = nn.Parameter(transform(param.data))
-    if state is not None and param in state:
-        old = state.pop(param)
-        state[new] = {k: transform(v) if torch.is_tensor(v) and v.shape == param.shape else v for k, v in old.items()}
-    return new
+def _replaced(param: nn.Parameter, transform: Callable[[Tensor], Tensor]) -> nn.Parameter:
+    """A new Parameter holding ``transform(param)``."""
+    return nn.Parameter(transform(param.data))

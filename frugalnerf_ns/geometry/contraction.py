@@ -41,16 +41,6 @@ def uncontract(contracted: Float[Tensor, "*bs 3"], centre: Float[Tensor, "3"], h
     return q * half + centre
 
 
-def contract_along_ray(depth: Float[Tensor, "*bs"], exit_distance: Float[Tensor, "*bs"]) -> Float[Tensor, "*bs"]:
-    """A distance along a ray contracted as ``contract`` contracts space, per ray: ``depth`` unchanged up to the
-    ray's exit from the box at ``exit_distance`` (t_f), and beyond it t_f (2 - t_f / depth): continuous with slope
-    1 at t_f, every distance beyond the box inside [t_f, 2 t_f), equal steps in disparity equal steps here."""
-    exit_distance = exit_distance.clamp_min(torch.finfo(depth.dtype).tiny)
-    beyond = depth > exit_distance
-    safe = torch.where(beyond, depth, exit_distance)
-    return torch.where(beyond, exit_distance * (2.0 - exit_distance / safe), depth)
-
-
 def disparity_bins(
     t_start: Float[Tensor, " rays"], t_end: Float[Tensor, " rays"], num_samples: int, jitter: bool
 ) -> tuple[Float[Tensor, "rays edges"], Float[Tensor, "rays samples"]]:

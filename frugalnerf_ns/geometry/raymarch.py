@@ -46,12 +46,6 @@ def intersect_aabb(
     return RaySegments(t_near, t_far, hit)
 
 
-def exit_distances(segments: RaySegments, aabb: Float[Tensor, "2 3"], origins: Float[Tensor, "rays 3"]) -> Float[Tensor, " rays"]:
-    """Where each ray leaves the box (``segments.t_far``), and for a ray that misses it the distance from its origin
-    to the box's centre (the outside's scale along that ray)."""
-    return torch.where(segments.hit, segments.t_far, (aabb.mean(dim=0) - origins).norm(dim=-1))
-
-
 def march_steps(
     segments: RaySegments, step: float, num_samples: int, jitter: bool
 ) -> tuple[Float[Tensor, "rays samples"], Bool[Tensor, "rays samples"]]:

@@ -13,14 +13,12 @@ Colours are in [0, 1].
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple, Tuple
+from typing import NamedTuple, Tuple
 
 import torch
 import torch.nn.functional as F
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
-
-ErrorKind = Literal["rmse", "mse"]
 
 # Points closer than this (in front of the camera, metric units) are treated as behind it: projecting
 # them divides by ~0 and throws them arbitrarily far across the image.
@@ -140,22 +138,21 @@ def downsample_views(
 def patch_reprojection_error(
     source_colors: Float[Tensor, "*scales patches pixels 3"],
     warped: Warp,
-    kind: ErrorKind = "rmse",
 ) -> Float[Tensor, "*scales patches"]:
     """Eq. 2 over a k x k patch (supp. Sec. B): the colour difference between each pixel of a view and
     where its warp lands in the nearest training view, aggregated over the patch.
 
     ``warped`` has colours [*scales, patches, pixels, 3] and validity [*scales, patches, pixels].
     Per pixel the error is the mean over RGB of the squared difference (in [0, 1]); an invalid warp counts
-    as MAX_PIXEL_ERROR. ``mse`` averages over the patch; ``rmse`` (the reference code's choice, and our
-    default) takes its square root, so the error reads in colour units: 0.5 means the warped patch is off by
-    half the colour range on average. Either way the result is in [0, 1], and a patch with more than a
-    quarter of its pixels landing outside the other view has RMSE >= 0.5.
+    as MAX_PIXEL_ERROR. The error is the RMSE over the patch (the reference code's choice): the square root of
+    the mean, so it reads in colour units: 0.5 means the warped patch is off by half the colour range on
+    average. It is in [0, 1], and a patch with more than a quarter of its pixels landing outside the other view
+    has RMSE >= 0.5.
     """
     per_pixel = ((source_colors - warped.colors) ** 2).mean(dim=-1)
     per_pixel = torch.where(warped.valid, per_pixel, torch.full_like(per_pixel, MAX_PIXEL_ERROR))
     mse = per_pixel.mean(dim=-1)
-    return mse.clamp_min(0).sqrt() if kind == "rmse" else mse
+    return mse.clamp_min(0).sqrt()
 
 
 class PseudoDepth(NamedTuple):

@@ -14,7 +14,6 @@ from nerfstudio.models.base_model import ModelConfig
 
 from frugalnerf_ns.field.color_mlp import MLPImplementation
 from frugalnerf_ns.field.density import DensityActivation
-from frugalnerf_ns.geometry.reprojection import ErrorKind
 
 
 Background = Literal["random_white", "white", "black"]
@@ -186,61 +185,6 @@ class FrugalNeRFSettings(ModelConfig):
     fall by this factor and the distortion weight grows by it (reference schedule, the learning rate's decay:
     LLFF 0.025, DTU 0.05); 1 keeps every weight constant."""
 
-    # ---- experimental: measured and not adopted (every preset keeps the default); docs/notes/ has the runs ----
-    carry_optimizer_state: bool = False
-    """Experimental, not adopted: At each upsampling (and shrink) resample the grid optimiser's Adam moments with the
-    grid and continue from them. Off (the reference code): a fresh Adam, whose first steps move every grid entry
-    with any gradient by about the learning rate (Adam's first step is lr * sign(gradient))."""
-    grid_lr_restarts: bool = True
-    """Experimental, not adopted: At each upsampling (and shrink) the grid's learning rate restarts at its first value
-    and decays again over the schedule's length (the reference code; TensoRF's lr_upsample_reset), so a run whose
-    last upsampling is half-way ends at lr * (lr_final / lr) ** 0.5. Off: the new optimiser takes the learning rate
-    the run's decay has reached (TensoRF's lr_upsample_reset 0), and the run ends at lr_final."""
-    scale_spanning_rounding: Literal["nearest", "up", "kept"] = "nearest"
-    """Experimental, not adopted: How ``scale_spanning_grid`` rounds an axis to 16k+1 entries: "nearest" (the first
-    32^3 grid of frugalnerf-cpu on LLFF's NDC box, 35x39x23, becomes 33x33x17: 41 % fewer voxels), "up" (49x49x33;
-    the final 160^3 grid 24 % more voxels), or "kept" (nearest, but the axes that lost most round up until the grid
-    keeps 3/4 of the voxels asked: 33x33x33 there, every later grid as "nearest")."""
-    scale_spanning_scales: Optional[int] = None
-    """Experimental, not adopted: How many lower scales ``scale_spanning_grid`` sizes the grid for, finest first: None,
-    all of them (16k+1 entries with ratio 4 and two lower scales); 1, the 1/4 scale only (4k+1: closer to the voxels
-    asked, and the 1/16 scale's view then spans the box only with ``lower_scale_reading`` "stretched")."""
-    lower_scale_reading: Literal["aligned", "stretched"] = "aligned"
-    """Experimental, not adopted: Where the lower scales read their strided views: "aligned", every entry where it lies
-    in the full grid (past a view's last entry the axis reads that entry, unless ``scale_spanning_grid``);
-    "stretched", the view's first and last entries on the box's faces, as if the view were a grid of its own over
-    the box (the reference code reads its downsampled tensors so): every grid size spans the box, and an entry is
-    read up to (R - 1) mod s full-grid voxels from where it lies (15 of an axis' 175 at R = 176 and s = 16; none at
-    the 16k+1 sizes of ``scale_spanning_grid``, where both readings are the same)."""
-    reprojection_error: ErrorKind = "rmse"
-    """Experimental, not adopted: How a patch's reprojection error (Eq. 2) aggregates per-channel squared colour
-    differences over the patch: rmse (reference code) or mse. Out-of-image / behind-camera pixels count as error 1."""
-    geo_weight_decay: float = 1.0
-    """Experimental, not adopted: lambda_geo at the last step over lambda_geo at the first, falling geometrically with
-    the step as the loss_weight_decay weights do; 1 keeps it constant (the paper and the reference code). Not a
-    paper setting: a strong pull while the geometry forms and a weak one while the full scale sharpens."""
-    photometric_novel_weight: float = 0.0
-    """Experimental, not adopted: Not a paper setting (0: off, every preset): the photometric term on the novel-view
-    rays (``geometric_adaptation.novel_view_photometric_consistency``): each 2x2 patch's points at the full scale's
-    rendered depth, warped into two training views, should show the same colour in both. Same levels and
-    ``photometric_max_error`` as the training patches' term."""
-    photometric_ssim_share: float = 0.0
-    """Experimental, not adopted: Not a paper setting (0: plain L1): the photometric terms' share of
-    ``losses.patch_dissimilarity`` ((1 - SSIM) / 2 over 3x3 blocks of each patch), the rest L1; Monodepth's 0.85."""
-    sparse_depth_weight_decay: Optional[float] = None
-    """Experimental, not adopted: lambda_sd at the last step over lambda_sd at the first, falling geometrically with
-    the step; None: the schedule of the other regularisers (loss_weight_decay, the reference code's). Not a paper
-    setting: the triangulated points stay closer to the scene than the rendered depth all through a short run, so a
-    pull that fades with the regularisers may let go of them while the full scale still moves."""
-    room_geo_depth: Literal["box", "contracted"] = "box"
-    """Experimental, not adopted: where the scene is an object in a metric box with the room beyond it (a far
-    background with the outer grids: photos circling their subject), the depth L_geo (Eq. 5, 9) compares: "box", the box's own render (the paper's
-    rendered depth; a ray whose content lies beyond the box has an arbitrary normalised depth there, and agreeing
-    scales ask for a surface in the box); "contracted", the whole ray's depth (the one its warp places points at),
-    unchanged up to the ray's exit from the box t_f and beyond it t_f (2 - t_f / d), mip-NeRF 360's contraction
-    along the ray (bounded: the room's 4-144 units weigh as much as the box's last half). Not a paper setting. The
-    juice box's wide split, seed 42: 13.34 / 0.445 / 0.660 against 13.55 / 0.442 / 0.601 ("box"), its training views
-    16.7 against 18.0 dB: docs/notes/captures.md, "L_geo and the room: three more probes"."""
     carve_unseen: Literal["auto", "on", "off"] = "auto"
     """In a metric box, whether the alpha mask (``alpha_mask_at``) also empties the space no training camera sees
     (``objective.carve_unseen_space``). No photo's colour reaches it; in the plain-fit regime (``room_warp_losses``)

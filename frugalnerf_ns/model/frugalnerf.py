@@ -39,7 +39,7 @@ from frugalnerf_ns.model.image_scoring import ImageScorer
 from frugalnerf_ns.scoring.metrics import capped_psnr
 from frugalnerf_ns.model.config import FrugalNeRFSettings
 from frugalnerf_ns.geometry.ndc import metric_distance_from_ndc, rays_to_ndc
-from frugalnerf_ns.geometry.raymarch import exit_distances, intersect_aabb
+from frugalnerf_ns.geometry.raymarch import intersect_aabb
 from frugalnerf_ns.field.fused_kernels import warp_kernels
 from frugalnerf_ns.model.rendering import (FUSED_CHUNK_RAYS, StepRender, render_in_chunks, render_scale,
                                            render_scale_inference, scale_suffix)
@@ -66,7 +66,6 @@ class FrugalNeRFModel(Model):
             self.config.initial_voxels,
             (aabb[1] - aabb[0]).tolist(),
             spanning_stride(self.config),
-            self.config.scale_spanning_rounding,
         )
         self.field = FrugalNeRFField(
             aabb=aabb,
@@ -82,7 +81,6 @@ class FrugalNeRFModel(Model):
             use_view_dirs=self.config.use_view_dirs,
             view_pe=self.config.view_pe,
             mlp_implementation=self.config.mlp_implementation,
-            lower_scale_reading=self.config.lower_scale_reading,
         )
         # What the datamanager found out about the scene (FrugalDataManager; absent with other datamanagers).
         scene = (self.kwargs.get("metadata") or {}).get("frugalnerf_scene") or {}
@@ -183,7 +181,7 @@ class FrugalNeRFModel(Model):
     def grid_resolution(self, num_voxels: int) -> Tuple[int, int, int]:
         """Grid resolution for ``num_voxels`` over the field's current box (``resolution_for_voxels``)."""
         box = (self.field.aabb[1] - self.field.aabb[0]).tolist()
-        return resolution_for_voxels(num_voxels, box, spanning_stride(self.config), self.config.scale_spanning_rounding)
+        return resolution_for_voxels(num_voxels, box, spanning_stride(self.config))
 
     def _refuse_a_checkpoint_without_the_far_background(self, state_dict, prefix, *args) -> None:
         """Loading hook: a checkpoint trained without a far background cannot fill this model's. nerfstudio's
@@ -308,13 +306,12 @@ class FrugalNeRFModel(Model):
         if self.training:
             # Everything the losses need, in one typed object (not a tensor: nerfstudio's loops skip it).
             outer_distortion = None if front is None else (front.distortion + behind.distortion).mean()  # type: ignore[union-attr]
-            box_exit = None if front is None else exit_distances(segments, self.field.aabb, world_origins)
             outputs["step"] = StepRender(background, world_origins, world_directions, renders, metric_depths, far_depth,
-                                         outer_distortion=outer_distortion, box_exit=box_exit)
+                                         outer_distortion=outer_distortion)
         elif len(renders) == self.field.num_scales > 1 and self.reference_views is not None and self._scale_map_wanted():
             chosen = pseudo_ground_truth_scale(
                 world_origins, world_directions, torch.stack(metric_depths), outputs["rgb"].reshape(-1, 3),
-                self.reference_views, cfg.reprojection_threshold, cfg.reprojection_error,
+                self.reference_views, cfg.reprojection_threshold,
             )
             outputs["pseudo_gt_scale"] = scale_choice_colors(chosen).reshape(*shape, 3)
         return outputs
@@ -398,7 +395,7 @@ class FrugalNeRFModel(Model):
                                                             self.warp_regime.warps)
             terms = objective.training_losses(
                 self.config, self.field, step, batch, self.reference_views, decay, self.occlusion_active,
-                geo_factor=factors.geo, sparse_factor=factors.sparse, adaptation=adaptation,
+                adaptation=adaptation,
                 room=self.has_room, warps=self.warp_regime.warps,
             )
             if self.outer_space is not None and self.outer_space.is_active:

@@ -18,7 +18,6 @@ from torch import Tensor
 from frugalnerf_ns.model import losses
 from frugalnerf_ns.geometry.novel_views import nearest_other_view
 from frugalnerf_ns.geometry.reprojection import (
-    ErrorKind,
     Warp,
     downsample_views,
     patch_reprojection_error,
@@ -70,7 +69,7 @@ class AdaptationResult(NamedTuple):
 
 
 def cross_scale_geometric_adaptation(
-    rays: AdaptationRays, views: ReferenceViews, threshold: float, kind: ErrorKind = "rmse"
+    rays: AdaptationRays, views: ReferenceViews, threshold: float
 ) -> AdaptationResult:
     """Eq. 2-10 on a batch of ``rays.num_train`` patch-major training rays followed by novel-view rays, each warped
     at every scale into its nearest one of ``views``.
@@ -102,12 +101,10 @@ def cross_scale_geometric_adaptation(
             colors[:, :num_train_rays].reshape(num_scales, num_patches, pixels, 3),
             valid[:, :num_train_rays].reshape(num_scales, num_patches, pixels),
         ),
-        kind,
     ).repeat_interleave(pixels, dim=1)
     novel_errors = patch_reprojection_error(
         source_colors[num_train_rays:, None, :][None],
         Warp(colors[:, num_train_rays:, None], valid[:, num_train_rays:, None]),
-        kind,
     )
     errors = torch.cat([train_errors, novel_errors], dim=1)
     # Rays with no other training view to warp into never count as reliable.
@@ -135,7 +132,6 @@ def photometric_consistency(
     views: ReferenceViews,
     levels: int,
     max_error: float,
-    ssim_share: float = 0.0,
 ) -> Float[Tensor, ""]:
     """Not a paper term: ``losses.photometric_consistency_loss`` on patch-major training rays, averaged over
     ``levels`` image sizes (full, then 2x, 4x, ... averaged blocks: a depth a few pixels off still sees a slope).
@@ -153,37 +149,7 @@ def photometric_consistency(
         warp = warp_to_views(origins, directions, depth, nearest_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
         source = sample_images(level_images, own_view, own_pixels / factor).colors
         compared.append((source.reshape(-1, pixels, 3), warp.colors.reshape(-1, pixels, 3), warp.valid.reshape(-1, pixels)))
-    return mean_over_levels(compared, usable, max_error, ssim_share)
-
-
-def novel_view_photometric_consistency(
-    origins: Float[Tensor, "rays 3"],
-    directions: Float[Tensor, "rays 3"],
-    depth: Float[Tensor, " rays"],
-    first_view: Int[Tensor, " rays"],
-    second_view: Int[Tensor, " rays"],
-    patch_pixels: int,
-    views: ReferenceViews,
-    levels: int,
-    max_error: float,
-    ssim_share: float = 0.0,
-) -> Float[Tensor, ""]:
-    """Not a paper term: the photometric term on novel-view rays, in patches of ``patch_pixels`` consecutive rays
-    (the datamanager's 2x2 novel patches). A novel ray has no colour of its own, so its point at ``depth`` (metric,
-    with gradient) is warped into two training views, ``first_view`` and ``second_view``, and their colours there
-    should agree; the gradient reaches the depth through both warps. The training patches' term pins the depth
-    along the training rays; a floater that the training rays look past sits on the novel rays, where this one
-    sees it. Same pyramid and same patch rule as ``photometric_consistency`` (both warps inside their images,
-    coarsest level's RMSE at most ``max_error``: what one of the views does not see is left out)."""
-    images, camera_to_worlds, intrinsics = views
-    usable = ((first_view >= 0) & (second_view >= 0)).reshape(-1, patch_pixels).all(dim=-1)
-    compared = []
-    for _, level_images, level_intrinsics in view_pyramid(images, intrinsics, levels):
-        first = warp_to_views(origins, directions, depth, first_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
-        second = warp_to_views(origins, directions, depth, second_view.clamp_min(0), level_images, camera_to_worlds, level_intrinsics)
-        compared.append((first.colors.reshape(-1, patch_pixels, 3), second.colors.reshape(-1, patch_pixels, 3),
-                         (first.valid & second.valid).reshape(-1, patch_pixels)))
-    return mean_over_levels(compared, usable, max_error, ssim_share)
+    return mean_over_levels(compared, usable, max_error)
 
 
 def view_pyramid(images: Float[Tensor, "views height width 3"], intrinsics: Float[Tensor, "views 4"], levels: int):
@@ -193,14 +159,14 @@ def view_pyramid(images: Float[Tensor, "views height width 3"], intrinsics: Floa
         yield (factor, *downsample_views(images, intrinsics, factor))
 
 
-def mean_over_levels(compared, usable: Tensor, max_error: float, ssim_share: float = 0.0) -> Float[Tensor, ""]:
+def mean_over_levels(compared, usable: Tensor, max_error: float) -> Float[Tensor, ""]:
     """``losses.photometric_consistency_loss`` averaged over the levels of ``compared`` ((source, warped, valid)
     per level, patch-major), on the ``usable`` patches whose coarsest level warps inside the image with an RMSE
-    (Eq. 2's measure, detached) of at most ``max_error``; ``ssim_share`` as in the loss."""
+    (Eq. 2's measure, detached) of at most ``max_error``."""
     source, warped, valid = compared[-1]
-    error = patch_reprojection_error(source.detach(), Warp(warped.detach(), valid), "rmse")
+    error = patch_reprojection_error(source.detach(), Warp(warped.detach(), valid))
     kept = usable & valid.all(dim=-1) & (error <= max_error)
-    return sum(losses.photometric_consistency_loss(s, w, kept, ssim_share) for s, w, _ in compared) / len(compared)
+    return sum(losses.photometric_consistency_loss(s, w, kept) for s, w, _ in compared) / len(compared)
 
 
 # Colours of the viewer's "pseudo_gt_scale" output: full scale red, scale 1 blue, scale 2 green, scale 3
@@ -216,7 +182,6 @@ def pseudo_ground_truth_scale(
     rendered_colors: Float[Tensor, "rays 3"],
     views: ReferenceViews,
     threshold: float,
-    kind: ErrorKind = "rmse",
 ) -> Int[Tensor, " rays"]:
     """Eq. 6-8 for any rays (a viewer or render camera): the scale whose depth would become each ray's
     pseudo ground truth, -1 where the ray would be left out.
@@ -227,7 +192,7 @@ def pseudo_ground_truth_scale(
     # A render camera can sit in a training camera: "own" views are those within 1e-3 of the baseline.
     nearest = nearest_other_view(origins, views.camera_to_worlds[:, :3, 3], same_position_fraction=1e-3)
     rays = AdaptationRays(origins, directions, metric_depths, metric_depths, rendered_colors.detach(), nearest, 0, 1)
-    return cross_scale_geometric_adaptation(rays, views, threshold, kind).chosen_scale
+    return cross_scale_geometric_adaptation(rays, views, threshold).chosen_scale
 
 
 def scale_choice_colors(chosen_scale: Int[Tensor, "*shape"]) -> Float[Tensor, "*shape 3"]:

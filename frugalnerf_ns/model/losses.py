@@ -224,46 +224,15 @@ def photometric_consistency_loss(
     source: Float[Tensor, "patches pixels 3"],
     warped: Float[Tensor, "patches pixels 3"],
     kept: Bool[Tensor, " patches"],
-    ssim_share: float = 0.0,
 ) -> Float[Tensor, ""]:
     """Not a paper term: the L1 colour difference between training pixels and where their rendered depth
     carries them in the nearest other training view (the warp of Eq. 2, with gradient through the depth),
     averaged over the ``kept`` patches; 0 when none is kept. Self-supervised depth's photometric loss
     (Monodepth) on the views a few-shot NeRF has: L_geo picks among the scales' depths by this error, this
-    term moves the full scale's depth down its gradient. With ``ssim_share`` a > 0 each patch's loss is
-    Monodepth's mix, a * patch_dissimilarity + (1 - a) * L1 (pixels must then form square patches)."""
+    term moves the full scale's depth down its gradient."""
     weight = kept.to(source.dtype)
     per_patch = (source - warped).abs().mean(dim=(-1, -2))
-    if ssim_share > 0:
-        per_patch = ssim_share * patch_dissimilarity(source, warped) + (1 - ssim_share) * per_patch
     return (per_patch * weight).sum() / weight.sum().clamp_min(1.0)
-
-
-def patch_dissimilarity(
-    source: Float[Tensor, "patches pixels 3"], warped: Float[Tensor, "patches pixels 3"], window: int = 3
-) -> Float[Tensor, " patches"]:
-    """Not a paper term: (1 - SSIM) / 2 of each square patch (pixels row-major), SSIM over every ``window`` x
-    ``window`` block inside it (Monodepth's 3x3, no padding; the whole patch when it is smaller), averaged over
-    the blocks and channels. Compares local contrast and structure, not only colour: a warp that lands on the
-    right edge in a view with other exposure still scores well."""
-    patches, pixels, _ = source.shape
-    side = int(round(pixels**0.5))
-    if side * side != pixels:
-        raise ValueError(f"patch_dissimilarity needs square patches, got {pixels} pixels")
-    size = min(window, side)
-    x = source.transpose(1, 2).reshape(patches, 3, side, side)
-    y = warped.transpose(1, 2).reshape(patches, 3, side, side)
-
-    def mean(t: Tensor) -> Tensor:
-        return torch.nn.functional.avg_pool2d(t, size, stride=1)
-
-    mu_x, mu_y = mean(x), mean(y)
-    var_x = mean(x * x) - mu_x**2
-    var_y = mean(y * y) - mu_y**2
-    cov = mean(x * y) - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2  # SSIM's constants for colours in [0, 1]
-    ssim = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return ((1 - ssim) / 2).clamp(0, 1).mean(dim=(1, 2, 3))
 
 
 def depth_smoothness_loss(depth: Float[Tensor, "patches 2 2"]) -> Float[Tensor, ""]:

@@ -25,11 +25,8 @@ from frugalnerf_ns.model.geometric_adaptation import (
     AdaptationResult,
     ReferenceViews,
     cross_scale_geometric_adaptation,
-    novel_view_photometric_consistency,
     photometric_consistency as photometric_consistency_loss,
 )
-from frugalnerf_ns.geometry.contraction import contract_along_ray
-from frugalnerf_ns.geometry.novel_views import nearest_other_view
 from frugalnerf_ns.geometry.scene_analysis import views_seeing
 from frugalnerf_ns.scoring.metrics import composite
 from frugalnerf_ns.model.rendering import StepRender
@@ -137,15 +134,11 @@ def training_losses(
     views: Optional[ReferenceViews],
     decay: float,
     occlusion_active: bool,
-    geo_factor: float = 1.0,
-    sparse_factor: Optional[float] = None,
     adaptation: Optional[AdaptationResult] = None,
     room: bool = False,
     warps: bool = True,
 ) -> Dict[str, Tensor]:
-    """Every term of the objective for one training step (nerfstudio sums them); ``geo_factor`` scales
-    lambda_geo (its schedule, geo_weight_decay), ``sparse_factor`` lambda_sd (None: ``decay``, as the other
-    regularisers); ``adaptation``: this step's ``geometric_adaptation`` where the metrics computed it (else it
+    """Every term of the objective for one training step (nerfstudio sums them); ``adaptation``: this step's ``geometric_adaptation`` where the metrics computed it (else it
     is computed here); ``room``: the scene has the room beyond its box (``uses_relative_sparse_depth``); ``warps``: the
     split's ``warp_regime`` lets the warp losses act."""
     device = render.background.device
@@ -163,20 +156,17 @@ def training_losses(
             geo = train_weight * (adaptation.loss_train + adaptation.loss_novel)
         else:
             geo = train_weight * adaptation.loss_train + novel_weight * adaptation.loss_novel
-        terms["geo_loss"] = geo_factor * geo
+        terms["geo_loss"] = geo
     if cfg.photometric_weight > 0 and views is not None and warps:
         with record_function("photometric_consistency"):
             terms["photometric"] = cfg.photometric_weight * photometric_consistency(cfg, render, batch, views)
-    if cfg.photometric_novel_weight > 0 and views is not None and batch.num_novel >= 4 and warps:
-        with record_function("photometric_consistency_novel"):
-            terms["photometric_novel"] = cfg.photometric_novel_weight * novel_photometric_consistency(cfg, render, batch, views)
     if cfg.sparse_depth_weight > 0 and batch.sparse_depth is not None:  # L_sd at every scale
         depth_error = losses.relative_disparity_loss if uses_relative_sparse_depth(cfg, room) else losses.inverse_depth_loss
         sparse = sum(
             depth_error(depth_through_box(render, scale, batch.sparse), batch.sparse_depth.to(device))
             for scale in range(len(render.scales))
         )
-        terms["sparse_depth"] = cfg.sparse_depth_weight * (decay if sparse_factor is None else sparse_factor) * sparse
+        terms["sparse_depth"] = cfg.sparse_depth_weight * decay * sparse
     if cfg.mono_depth_weight > 0 and batch.mono_depth is not None:  # L_d at every scale
         view = batch.indices[:, 0].to(device)
         mono = sum(losses.per_view_pearson_loss(d[batch.train], batch.mono_depth.to(device), view) for d in render.metric_depths)
@@ -291,24 +281,7 @@ def photometric_consistency(
     return photometric_consistency_loss(
         render.origins[rows], render.directions[rows], depth, indices[:, 0].long(),
         indices[:, [2, 1]].to(depth.dtype) + 0.5, batch.nearest_view[rows], batch.patch_size,
-        views, cfg.photometric_levels, cfg.photometric_max_error, cfg.photometric_ssim_share,
-    )
-
-
-def novel_photometric_consistency(
-    cfg: "FrugalNeRFSettings", render: StepRender, batch: TrainBatch, views: ReferenceViews
-) -> Float[Tensor, ""]:
-    """The photometric term on the step's novel-view rays (``geometric_adaptation.novel_view_photometric_consistency``)
-    at the full scale's metric depth with gradient: each 2x2 patch warped into its nearest training view and the
-    training view nearest to it after that."""
-    rows = slice(batch.novel.start, batch.novel.start + batch.num_novel // 4 * 4)
-    origins = render.origins[rows]
-    first = batch.nearest_view[rows].to(origins.device)
-    centers = views.camera_to_worlds[:, :3, 3].to(origins.dtype)
-    second = nearest_other_view(origins.detach(), centers, own_view=first).to(first.device)
-    return novel_view_photometric_consistency(
-        origins, render.directions[rows], render.metric_depths[0][rows], first, second, 4,
-        views, cfg.photometric_levels, cfg.photometric_max_error, cfg.photometric_ssim_share,
+        views, cfg.photometric_levels, cfg.photometric_max_error,
     )
 
 
@@ -410,23 +383,13 @@ def geometric_adaptation(
             render.origins[warped],
             render.directions[warped],
             torch.stack([depth[warped] for depth in render.metric_depths]),
-            geo_loss_depths(cfg, render, warped),
+            torch.stack([scale.depth[warped, 0] for scale in render.scales]),
             source,
             batch.nearest_view,
             batch.num_train,
             batch.patch_size,
         )
-        return cross_scale_geometric_adaptation(rays, views, cfg.reprojection_threshold, cfg.reprojection_error)
-
-
-def geo_loss_depths(cfg: "FrugalNeRFSettings", render: StepRender, rows: slice) -> Float[Tensor, "scales rays"]:
-    """The depths L_geo compares (Eq. 5, 9) for the rays ``rows``: each scale's depth as the model renders it (NDC
-    depth in NDC scenes, the box's own in a box), or where the space beyond the box is modelled and
-    ``room_geo_depth`` is "contracted", the whole ray's depth contracted beyond the box (``contract_along_ray``)."""
-    if cfg.room_geo_depth == "contracted" and render.box_exit is not None:
-        exit_distance = render.box_exit[rows]
-        return torch.stack([contract_along_ray(depth[rows], exit_distance) for depth in render.metric_depths])
-    return torch.stack([scale.depth[rows, 0] for scale in render.scales])
+        return cross_scale_geometric_adaptation(rays, views, cfg.reprojection_threshold)
 
 
 def _add(terms: Dict[str, Tensor], name: str, value: Tensor) -> None:

@@ -346,6 +346,3 @@ class StepRender:
     behind the field's depth (``depth_through_box``)."""
     outer_distortion: Optional[Tensor] = None
     """Mean distortion of the samples outside the box (``OuterRender.distortion``; None: no outer space)."""
-    box_exit: Optional[Float[Tensor, " rays"]] = None
-    """Where the space beyond the box is modelled: the distance along each world ray to where it leaves the box
-    (to the box's centre for a ray that misses it); ``objective.geometric_adaptation`` contracts depth beyond it."""

@@ -56,8 +56,6 @@ def option_problems(config: Any) -> List[str]:
             " ".join(map(str, fractions)) or "(none)",
         )
     need(model.num_lower_scales >= 0, f"{m}.num_lower_scales", ">= 0", model.num_lower_scales)
-    spanning = model.scale_spanning_scales
-    need(spanning is None or spanning >= 1, f"{m}.scale_spanning_scales", ">= 1 (or None: all)", spanning)
     need(model.downsample_ratio >= 1, f"{m}.downsample_ratio", ">= 1", model.downsample_ratio)
     need(_positive(model.step_ratio), f"{m}.step_ratio", "> 0", model.step_ratio)
     need(model.max_samples_per_ray >= 1, f"{m}.max_samples_per_ray", ">= 1", model.max_samples_per_ray)
@@ -71,12 +69,6 @@ def option_problems(config: Any) -> List[str]:
         model.reprojection_threshold,
     )
     need(_positive(model.loss_weight_decay), f"{m}.loss_weight_decay", "> 0 (1 keeps the weights constant)", model.loss_weight_decay)
-    need(_positive(model.geo_weight_decay), f"{m}.geo_weight_decay", "> 0 (1 keeps lambda_geo constant)", model.geo_weight_decay)
-    if model.sparse_depth_weight_decay is not None:
-        need(
-            _positive(model.sparse_depth_weight_decay), f"{m}.sparse_depth_weight_decay",
-            "> 0 (1 keeps lambda_sd constant; None follows loss_weight_decay)", model.sparse_depth_weight_decay,
-        )
     for name, value in _fields_ending(model, "_weight"):
         need(_non_negative(value), f"{m}.{name}", ">= 0 and finite", value)
     k = dm.patch_size

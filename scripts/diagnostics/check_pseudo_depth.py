@@ -81,7 +81,7 @@ def main(argv=None) -> None:
         depths = torch.stack([outputs["depth" + ("" if s == 0 else f"_scale{s}")].reshape(-1) for s in scales]).cpu()
         chosen_scale = pseudo_ground_truth_scale(
             bundle.origins, bundle.directions, depths.to(model.device), outputs["rgb"].reshape(-1, 3),
-            model.reference_views, model.config.reprojection_threshold, model.config.reprojection_error,
+            model.reference_views, model.config.reprojection_threshold,
         ).cpu()
         report[group] = summarise(depths, truth, chosen_scale)
         r = report[group]
