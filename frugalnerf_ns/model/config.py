@@ -8,8 +8,10 @@ this one and no import runs in a circle."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Optional, Tuple
+from typing import Dict, Literal, Optional, Tuple
 
+import tyro
+from nerfstudio.configs.config_utils import to_immutable_dict
 from nerfstudio.models.base_model import ModelConfig
 
 from frugalnerf_ns.field.color_mlp import MLPImplementation
@@ -25,6 +27,15 @@ class FrugalNeRFSettings(ModelConfig):
 
     enable_collider: bool = False
     """Rays are clipped to the scene box by the model itself, so nerfstudio's near/far collider is off."""
+    # Inherited from nerfstudio's ModelConfig and read by no part of this model: left out of --help (tyro's
+    # Suppress), with nerfstudio's defaults, so that config.yml files that hold them still load. (The collider that
+    # enable_collider would build from collider_params sets near/far bounds the model never reads.)
+    collider_params: tyro.conf.Suppress[Optional[Dict[str, float]]] = to_immutable_dict({"near_plane": 2.0, "far_plane": 6.0})
+    """nerfstudio's near/far collider bounds; unread (the model clips rays to its box)."""
+    loss_coefficients: tyro.conf.Suppress[Dict[str, float]] = to_immutable_dict({"rgb_loss_coarse": 1.0, "rgb_loss_fine": 1.0})
+    """nerfstudio's coarse/fine colour-loss weights; unread (the loss weights are this config's ``*_weight`` fields)."""
+    prompt: tyro.conf.Suppress[Optional[str]] = None
+    """nerfstudio's text prompt for text-to-NeRF models; unread."""
     near_plane: float = 0.05
     """Samples closer to the camera than this are skipped."""
     initial_voxels: int = 64**3

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple, Type
 
 import torch
+import tyro
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackLocation
 from nerfstudio.engine.trainer import Trainer, TrainerConfig
 from nerfstudio.utils.decorators import check_main_thread
@@ -48,6 +49,8 @@ class FrugalTrainerConfig(TrainerConfig):
     """nerfstudio's trainer settings; the trainer adds atomic checkpoints and checked options."""
 
     _target: Type = field(default_factory=lambda: FrugalTrainer)
+    prompt: tyro.conf.Suppress[Optional[str]] = None
+    """nerfstudio's alias of --pipeline.model.prompt, which no part of FrugalNeRF reads: left out of --help with it."""
     schedule_steps: Optional[int] = None
     """Steps every schedule spans: the learning rates' and loss weights' decay, grid upsampling and the alpha
     mask (--pipeline.model.upsample-at / alpha-mask-at are fractions of it). None: --max-num-iterations of a run
