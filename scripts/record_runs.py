@@ -21,7 +21,7 @@ KEEP = ("scene", "views", "method", "seed", "parser_args", "num_test_views", "co
 
 def record_entry(run: Dict[str, Any], note: Optional[str]) -> Dict[str, Any]:
     entry = {key: run.get(key) for key in KEEP}
-    entry.update({metric: round(float(run[metric]), 4) for metric in ("psnr", "ssim", "lpips")})
+    entry.update({metric: round(float(run[metric]), 6) for metric in ("psnr", "ssim", "lpips")})  # the pages round it once
     entry["train_minutes"] = round(float(run["train_seconds"]) / 60, 1) if run.get("train_seconds") else None
     if note:
         entry["note"] = note
