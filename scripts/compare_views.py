@@ -23,6 +23,9 @@ def render(config: Path, index: int) -> Tuple[np.ndarray, np.ndarray, Optional[n
     """(ground truth, colour, depth) of test view ``index`` of the run in ``config``, as float arrays in [0, 1]."""
     from nerfstudio.utils.eval_utils import eval_setup
 
+    from frugalnerf_ns.tools.offline_tools import patch_torchmetrics_lpips
+
+    patch_torchmetrics_lpips()  # tensorf and nerfacto build torchmetrics' LPIPS, which would download AlexNet
     _, pipeline, _, _ = eval_setup(config, test_mode="test")
     dataset = pipeline.datamanager.eval_dataset
     if not 0 <= index < len(dataset):
