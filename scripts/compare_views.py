@@ -23,6 +23,7 @@ def render(config: Path, index: int) -> Tuple[np.ndarray, np.ndarray, Optional[n
     """(ground truth, colour, depth) of test view ``index`` of the run in ``config``, as float arrays in [0, 1]."""
     from nerfstudio.utils.eval_utils import eval_setup
 
+    from frugalnerf_ns.model.objective import target_rgb
     from frugalnerf_ns.tools.offline_tools import patch_torchmetrics_lpips
 
     patch_torchmetrics_lpips()  # tensorf and nerfacto build torchmetrics' LPIPS, which would download AlexNet
@@ -33,9 +34,7 @@ def render(config: Path, index: int) -> Tuple[np.ndarray, np.ndarray, Optional[n
     camera = dataset.cameras[index : index + 1].to(pipeline.model.device)
     with torch.no_grad():
         outputs = pipeline.model.get_outputs_for_camera_ray_bundle(camera.generate_rays(camera_indices=0, keep_shape=True))
-    image = dataset[index]["image"].float()
-    if image.shape[-1] == 4:  # RGBA on white, as the evaluator scores it
-        image = image[..., :3] * image[..., 3:] + (1 - image[..., 3:])
+    image = target_rgb(dataset[index]["image"].float(), torch.ones(3))  # RGBA on white, as the evaluator scores it
     depth = outputs.get("depth")
     return image.numpy(), outputs["rgb"].clamp(0, 1).cpu().numpy(), None if depth is None else depth[..., 0].cpu().numpy()
 
@@ -47,16 +46,14 @@ def depth_panel(depth: np.ndarray) -> np.ndarray:
     return np.repeat(np.clip((disparity - lo) / max(hi - lo, 1e-9), 0, 1)[..., None], 3, axis=-1)
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(-10 * np.log10(max(float(np.mean((a - b) ** 2)), 1e-10)))
-
-
 def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", help="label=<run>/config.yml, the first one's depth is shown")
     parser.add_argument("--test", type=int, default=0, help="index of the test view")
     parser.add_argument("--out", type=Path, required=True, help="the picture (.jpg or .png)")
     args = parser.parse_args(argv)
+    from frugalnerf_ns.scoring.metrics import capped_psnr
+
     runs = []
     for item in args.runs:
         label, _, path = item.partition("=")
@@ -73,7 +70,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if colour.shape != panels[0].shape:
             sys.exit(f"compare_views: {label}'s test view {args.test} is {colour.shape[:2]}, not {panels[0].shape[:2]}")
         panels.append(colour)
-        labels.append(f"{label} {psnr(colour, panels[0]):.2f} dB")
+        labels.append(f"{label} {float(capped_psnr(torch.from_numpy(colour), torch.from_numpy(panels[0]))):.2f} dB")
     if first_depth is not None:
         panels.append(depth_panel(first_depth))
         labels.append(f"{runs[0][0]} depth")
